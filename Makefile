@@ -1,0 +1,28 @@
+# The two commands of the README: `make demo` and `make test`.
+# Both set up a fresh machine first (system libraries, a virtual environment, the package).
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+export MUJOCO_GL ?= osmesa
+export PYOPENGL_PLATFORM ?= osmesa
+
+.PHONY: setup demo test test-slow lint bench clean
+
+setup:
+	@bash scripts/setup.sh
+
+demo: setup
+	$(VENV)/bin/mmpa demo --out runs/demo
+
+test: setup
+	$(VENV)/bin/ruff check src tests benchmarks
+	$(PY) -m pytest -q
+
+test-slow: setup
+	$(PY) -m pytest -q -m slow
+
+bench: setup
+	$(PY) benchmarks/bench_sim.py
+
+clean:
+	rm -rf $(VENV) .setup-stamp

@@ -1,0 +1,234 @@
+"""The robot, described in one place: UR5e-class arm on a differential-drive base.
+
+Everything here is NOMINAL (what the software believes). The simulator builds its TRUE robot
+from a perturbed copy (see ``mmpa.sim.error_model``). Poses of mounted parts are stored as
+6D vectors ``[tx, ty, tz, roll, pitch, yaw]`` (m, rad) and exposed as 4x4 ``T_a_b``
+properties. Units: m, rad, s.
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, field_validator, model_validator
+
+from mmpa.geometry import Array, vec6_to_T
+
+Vec6 = tuple[float, float, float, float, float, float]
+
+_PI = float(np.pi)
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid", arbitrary_types_allowed=True)
+
+
+class DHParameters(_Frozen):
+    """Standard (distal) Denavit-Hartenberg parameters of a 6-joint arm.
+
+    Link transform ``A_i(q_i) = Rz(q_i + theta_offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i)`` and
+    ``T_arm_base_flange(q) = A_1 A_2 ... A_6``. Defaults: UR5e published values
+    (Universal Robots, "DH parameters for calculations of kinematics and dynamics").
+    """
+
+    a: tuple[float, ...] = (0.0, -0.425, -0.3922, 0.0, 0.0, 0.0)
+    d: tuple[float, ...] = (0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996)
+    alpha: tuple[float, ...] = (_PI / 2, 0.0, 0.0, _PI / 2, -_PI / 2, 0.0)
+    theta_offset: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+    @field_validator("a", "d", "alpha", "theta_offset")
+    @classmethod
+    def _six(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if len(v) != 6 or not all(np.isfinite(v)):
+            raise ValueError(f"need 6 finite values, got {v}")
+        return v
+
+    def as_arrays(self) -> tuple[Array, Array, Array, Array]:
+        """``(a, d, alpha, theta_offset)`` as float arrays of shape (6,)."""
+        return (
+            np.array(self.a),
+            np.array(self.d),
+            np.array(self.alpha),
+            np.array(self.theta_offset),
+        )
+
+
+class ArmDescription(_Frozen):
+    """UR5e-class arm: kinematics and motion limits (UR5e datasheet)."""
+
+    name: str = "ur5e"
+    dh: DHParameters = DHParameters()
+    q_min: tuple[float, ...] = (-2 * _PI, -2 * _PI, -_PI, -2 * _PI, -2 * _PI, -2 * _PI)
+    q_max: tuple[float, ...] = (2 * _PI, 2 * _PI, _PI, 2 * _PI, 2 * _PI, 2 * _PI)
+    qd_max: tuple[float, ...] = (_PI, _PI, _PI, _PI, _PI, _PI)  # 180 deg/s
+    qdd_max: tuple[float, ...] = (4.0, 4.0, 4.0, 6.0, 6.0, 6.0)  # rad/s^2, conservative
+    qddd_max: tuple[float, ...] = (40.0, 40.0, 40.0, 60.0, 60.0, 60.0)  # rad/s^3, for ruckig
+    reach: float = 0.85  # m, from the shoulder axis
+    link_masses: tuple[float, ...] = (3.761, 8.058, 2.846, 1.37, 1.3, 0.365)  # kg
+    home: tuple[float, ...] = (0.0, -1.8, 1.9, -1.67, -1.5708, 0.0)  # camera looks ahead-down
+
+    @model_validator(mode="after")
+    def _limits(self) -> ArmDescription:
+        for name in ("q_min", "q_max", "qd_max", "qdd_max", "qddd_max", "home", "link_masses"):
+            if len(getattr(self, name)) != 6:
+                raise ValueError(f"arm.{name} needs 6 values")
+        if any(lo >= hi for lo, hi in zip(self.q_min, self.q_max, strict=True)):
+            raise ValueError("arm.q_min must be below arm.q_max for every joint")
+        return self
+
+    @property
+    def q_limits(self) -> tuple[Array, Array]:
+        """Joint limits ``(q_min, q_max)``, each shape (6,) rad."""
+        return np.array(self.q_min), np.array(self.q_max)
+
+
+class BaseDescription(_Frozen):
+    """Two-wheel differential drive base with a rear caster (Gagabot DR-03 class).
+
+    ``base_link`` sits on the floor midway between the wheel contact points, x forward,
+    z up (REP-105 ``base_footprint`` convention, so planar poses are ``T_map_base_link``).
+    """
+
+    wheel_radius: float = 0.08
+    track_width: float = 0.46  # distance between wheel contact points
+    wheel_width: float = 0.04
+    caster_radius: float = 0.04
+    caster_x: float = -0.28  # caster position along x in base_link
+    body_size: tuple[float, float, float] = (0.70, 0.52, 0.34)  # box, m
+    body_offset_x: float = -0.05  # body box center along x in base_link
+    mass: float = 60.0
+    max_wheel_speed: float = 12.0  # rad/s
+    max_linear_speed: float = 0.6  # m/s
+    max_angular_speed: float = 1.2  # rad/s
+
+
+class GripperDescription(_Frozen):
+    """Two-finger parallel gripper (Robotiq 2F-85 class)."""
+
+    stroke: float = 0.085  # m, fully open finger gap
+    length: float = 0.16  # m, flange to fingertip center (the TCP)
+    max_force: float = 110.0  # N
+
+    @property
+    def T_flange_tcp(self) -> Array:
+        """TCP between the fingertips, along the flange z axis."""
+        return vec6_to_T([0.0, 0.0, self.length, 0.0, 0.0, 0.0])
+
+
+class CameraIntrinsics(_Frozen):
+    """Pinhole intrinsics: ``u = fx x/z + cx``, ``v = fy y/z + cy`` (pixels)."""
+
+    width: int = 640
+    height: int = 480
+    fx: float = 615.0
+    fy: float = 615.0
+    cx: float = 319.5
+    cy: float = 239.5
+
+    @property
+    def K(self) -> Array:
+        """3x3 camera matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def fovy(self) -> float:
+        """Vertical field of view (rad) of an ideal centered pinhole with these intrinsics."""
+        return float(2.0 * np.arctan2(self.height / 2.0, self.fy))
+
+
+class CameraDescription(_Frozen):
+    """Wrist RGB-D camera (Intel RealSense D435 class), depth aligned to color.
+
+    ``T_flange_camera`` is the optical frame (z forward, x right, y down) in the flange frame.
+    """
+
+    T_flange_camera_vec: Vec6 = (0.0, -0.095, 0.045, 0.0, 0.0, 0.0)
+    color: CameraIntrinsics = CameraIntrinsics()
+    depth: CameraIntrinsics = CameraIntrinsics()  # aligned to color
+    depth_focal_native: float = 385.0  # px, of the stereo depth imager (noise model)
+    baseline: float = 0.050  # m, stereo baseline (noise model)
+    min_range: float = 0.2
+    max_range: float = 4.0
+    rate: float = 30.0  # Hz
+
+    @cached_property
+    def T_flange_camera(self) -> Array:
+        return vec6_to_T(self.T_flange_camera_vec)
+
+
+class LidarDescription(_Frozen):
+    """2D lidar on the base (SICK NAV350 class: reflector-capable, 360 deg)."""
+
+    T_base_link_laser_vec: Vec6 = (0.30, 0.0, 0.22, 0.0, 0.0, 0.0)
+    angle_min: float = -_PI
+    angle_increment: float = float(np.deg2rad(0.25))
+    num_beams: int = 1440
+    range_min: float = 0.05
+    range_max: float = 20.0
+    rate: float = 10.0  # Hz
+
+    @property
+    def angle_max(self) -> float:
+        return self.angle_min + (self.num_beams - 1) * self.angle_increment
+
+    @property
+    def angles(self) -> Array:
+        """Beam angles (rad), shape (num_beams,), in the laser frame."""
+        return self.angle_min + self.angle_increment * np.arange(self.num_beams)
+
+    @cached_property
+    def T_base_link_laser(self) -> Array:
+        return vec6_to_T(self.T_base_link_laser_vec)
+
+
+class PhotoSensorDescription(_Frozen):
+    """Photoelectric laser sensor on the tool; the beam runs along the sensor's +z axis."""
+
+    T_flange_sensor_vec: Vec6 = (0.0, 0.0, 0.02, 0.0, 0.0, 0.0)
+    max_range: float = 0.5  # m, beyond that a reflector does not trigger it
+
+    @cached_property
+    def T_flange_sensor(self) -> Array:
+        return vec6_to_T(self.T_flange_sensor_vec)
+
+
+class RobotDescription(_Frozen):
+    """Everything the software knows about the robot (nominal values)."""
+
+    name: str = "mmpa-ur5e-diffdrive"
+    arm: ArmDescription = ArmDescription()
+    base: BaseDescription = BaseDescription()
+    T_base_link_arm_base_vec: Vec6 = (0.12, 0.0, 0.40, 0.0, 0.0, 0.0)
+    gripper: GripperDescription = GripperDescription()
+    camera: CameraDescription = CameraDescription()
+    lidar: LidarDescription = LidarDescription()
+    photosensor: PhotoSensorDescription = PhotoSensorDescription()
+
+    @cached_property
+    def T_base_link_arm_base(self) -> Array:
+        """Arm mount on the base."""
+        return vec6_to_T(self.T_base_link_arm_base_vec)
+
+    def with_updates(self, **changes: object) -> RobotDescription:
+        """A copy with some top-level fields replaced (validated)."""
+        return RobotDescription.model_validate({**self.model_dump(), **changes})
+
+
+def default_robot() -> RobotDescription:
+    """The nominal robot of mmpa's digital twin."""
+    return RobotDescription()
+
+
+__all__ = [
+    "ArmDescription",
+    "BaseDescription",
+    "CameraDescription",
+    "CameraIntrinsics",
+    "DHParameters",
+    "GripperDescription",
+    "LidarDescription",
+    "PhotoSensorDescription",
+    "RobotDescription",
+    "default_robot",
+]

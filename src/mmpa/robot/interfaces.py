@@ -1,0 +1,238 @@
+"""Hardware-neutral interfaces (``typing.Protocol``) and the sensor data types they return.
+
+Missions talk to a robot only through these, so a hardware backend can replace the simulator
+without touching them. Data types carry ROS-like fields and are plain numpy arrays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from mmpa.errors import InvalidInputError
+from mmpa.geometry import Array, apply
+from mmpa.robot.description import CameraIntrinsics
+
+__all__ = [
+    "Arm",
+    "Base",
+    "Camera",
+    "Gripper",
+    "Lidar",
+    "LaserScan",
+    "Odometry",
+    "PhotoSensor",
+    "PointCloud",
+    "RGBDFrame",
+    "deproject",
+]
+
+
+@dataclass(frozen=True)
+class PointCloud:
+    """A colored point cloud: ``points`` (N, 3) m in ``frame``, ``colors`` (N, 3) in [0, 1]."""
+
+    points: Array
+    colors: Array
+    frame: str = "camera"
+
+    def __post_init__(self) -> None:
+        p, c = np.asarray(self.points), np.asarray(self.colors)
+        if p.ndim != 2 or p.shape[1] != 3 or c.shape != p.shape:
+            raise InvalidInputError(
+                f"point cloud needs points (N,3) and colors (N,3); got {p.shape} and {c.shape}"
+            )
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def transformed(self, T_new_old: Array, frame: str) -> PointCloud:
+        """The same cloud expressed in another frame: ``p_new = T_new_old p_old``."""
+        return PointCloud(apply(T_new_old, self.points), self.colors, frame)
+
+
+@dataclass(frozen=True)
+class RGBDFrame:
+    """One RGB-D capture, depth aligned to color.
+
+    ``color`` (H, W, 3) uint8 RGB; ``depth`` (H, W) float32 metres along the optical axis,
+    0 where invalid; ``intrinsics`` of both; ``stamp`` seconds (sensor clock).
+    """
+
+    color: np.ndarray
+    depth: np.ndarray
+    intrinsics: CameraIntrinsics
+    stamp: float
+    frame_id: str = "camera"
+
+    def __post_init__(self) -> None:
+        h, w = self.intrinsics.height, self.intrinsics.width
+        if self.color.shape != (h, w, 3) or self.depth.shape != (h, w):
+            raise InvalidInputError(
+                f"RGB-D frame shapes color {self.color.shape}, depth {self.depth.shape} do not "
+                f"match intrinsics {w}x{h}"
+            )
+
+    def to_point_cloud(
+        self, min_depth: float = 0.0, max_depth: float = np.inf, stride: int = 1
+    ) -> PointCloud:
+        """Deproject valid pixels to a colored cloud in the camera optical frame."""
+        return deproject(self.depth, self.color, self.intrinsics, min_depth, max_depth, stride)
+
+
+def deproject(
+    depth: np.ndarray,
+    color: np.ndarray | None,
+    intrinsics: CameraIntrinsics,
+    min_depth: float = 0.0,
+    max_depth: float = np.inf,
+    stride: int = 1,
+) -> PointCloud:
+    """Pinhole deprojection: ``x = (u - cx) z / fx``, ``y = (v - cy) z / fy``, ``z = depth``.
+
+    Pixels with ``depth <= 0``, non-finite, or outside ``[min_depth, max_depth]`` are dropped.
+    Returns a :class:`PointCloud` in the camera optical frame (z forward, x right, y down).
+    """
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise InvalidInputError(f"depth must be (H, W), got {depth.shape}")
+    v, u = np.mgrid[0 : depth.shape[0] : stride, 0 : depth.shape[1] : stride]
+    z = depth[::stride, ::stride].astype(float)
+    ok = np.isfinite(z) & (z > 0) & (z >= min_depth) & (z <= max_depth)
+    z, u, v = z[ok], u[ok], v[ok]
+    x = (u - intrinsics.cx) * z / intrinsics.fx
+    y = (v - intrinsics.cy) * z / intrinsics.fy
+    pts = np.stack([x, y, z], axis=1)
+    if color is None:
+        cols = np.full_like(pts, 0.5)
+    else:
+        cols = color[::stride, ::stride][ok].astype(float) / 255.0
+    return PointCloud(pts, cols, "camera")
+
+
+@dataclass(frozen=True)
+class LaserScan:
+    """A 2D scan with the fields of ROS ``sensor_msgs/LaserScan``.
+
+    ``ranges`` (N,) m, ``inf`` where nothing returned within ``range_max``; ``intensities``
+    (N,) (reflective tape returns > 1000, ordinary surfaces < 300).
+    """
+
+    angle_min: float
+    angle_max: float
+    angle_increment: float
+    time_increment: float
+    scan_time: float
+    range_min: float
+    range_max: float
+    ranges: Array
+    intensities: Array
+    stamp: float = 0.0
+    frame_id: str = "laser"
+
+    def __post_init__(self) -> None:
+        n = int(round((self.angle_max - self.angle_min) / self.angle_increment)) + 1
+        if self.ranges.shape != (n,) or self.intensities.shape != (n,):
+            raise InvalidInputError(
+                f"scan has {self.ranges.shape} ranges and {self.intensities.shape} intensities, "
+                f"expected {n} from the angle fields"
+            )
+
+    @property
+    def angles(self) -> Array:
+        """Beam angles (rad), shape (N,)."""
+        return self.angle_min + self.angle_increment * np.arange(self.ranges.shape[0])
+
+    def valid(self) -> Array:
+        """Mask of beams with a finite range inside ``[range_min, range_max]``."""
+        r = self.ranges
+        return np.isfinite(r) & (r >= self.range_min) & (r <= self.range_max)
+
+    def points(self) -> Array:
+        """Valid returns as (M, 2) points in the laser frame."""
+        m = self.valid()
+        a, r = self.angles[m], self.ranges[m]
+        return np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+
+
+@dataclass(frozen=True)
+class Odometry:
+    """Wheel odometry: pose ``[x, y, theta]`` in ``odom`` and body twist ``[v, w]``."""
+
+    pose: Array
+    twist: Array
+    stamp: float
+    frame_id: str = "odom"
+    child_frame_id: str = "base_link"
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+@runtime_checkable
+class Base(Protocol):
+    """A differential-drive mobile base."""
+
+    def set_velocity(self, v: float, w: float) -> None:
+        """Command body velocity: ``v`` m/s forward, ``w`` rad/s counter-clockwise."""
+        ...
+
+    def stop(self) -> None: ...
+
+    def odometry(self) -> Odometry: ...
+
+
+@runtime_checkable
+class Arm(Protocol):
+    """A 6-DOF position-controlled arm."""
+
+    def joint_positions(self) -> Array:
+        """Measured joint angles (rad), shape (6,)."""
+        ...
+
+    def move_joints(self, q: Array, duration: float | None = None) -> None:
+        """Move to ``q`` (rad, shape (6,)) and wait until there (within ``duration`` s)."""
+        ...
+
+    def follow(self, times: Array, q_path: Array) -> None:
+        """Track a time-parameterized joint path ``q_path`` (T, 6) at ``times`` (T,) s."""
+        ...
+
+
+@runtime_checkable
+class Gripper(Protocol):
+    """A two-finger parallel gripper."""
+
+    def open(self) -> None: ...
+
+    def close(self) -> bool:
+        """Close; True if an object is held (fingers stopped before fully closed)."""
+        ...
+
+    def width(self) -> float:
+        """Current finger gap (m)."""
+        ...
+
+
+@runtime_checkable
+class Camera(Protocol):
+    """An RGB-D camera (depth aligned to color)."""
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics: ...
+
+    def capture(self) -> RGBDFrame: ...
+
+
+@runtime_checkable
+class Lidar(Protocol):
+    """A 2D laser scanner."""
+
+    def scan(self) -> LaserScan: ...
+
+
+@runtime_checkable
+class PhotoSensor(Protocol):
+    """A photoelectric (retroreflective) sensor: True when its beam returns."""
+
+    def triggered(self) -> bool: ...
