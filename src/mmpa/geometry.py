@@ -17,6 +17,8 @@ from mmpa.errors import InvalidInputError
 Array = NDArray[np.float64]
 
 __all__ = [
+    "R_to_quat_xyzw",
+    "R_to_rpy",
     "T_to_se2",
     "T_to_vec6",
     "adjoint",
@@ -28,8 +30,6 @@ __all__ = [
     "log_se3",
     "make_T",
     "quat_xyzw_to_R",
-    "R_to_quat_xyzw",
-    "R_to_rpy",
     "rot_x",
     "rot_y",
     "rot_z",
@@ -38,8 +38,8 @@ __all__ = [
     "se2_compose",
     "se2_inv",
     "se2_to_T",
-    "translation_error",
     "trans",
+    "translation_error",
     "vec6_to_T",
     "wrap_angle",
 ]

@@ -20,8 +20,8 @@ __all__ = [
     "Base",
     "Camera",
     "Gripper",
-    "Lidar",
     "LaserScan",
+    "Lidar",
     "Odometry",
     "PhotoSensor",
     "PointCloud",
@@ -133,7 +133,7 @@ class LaserScan:
     frame_id: str = "laser"
 
     def __post_init__(self) -> None:
-        n = int(round((self.angle_max - self.angle_min) / self.angle_increment)) + 1
+        n = round((self.angle_max - self.angle_min) / self.angle_increment) + 1
         if self.ranges.shape != (n,) or self.intensities.shape != (n,):
             raise InvalidInputError(
                 f"scan has {self.ranges.shape} ranges and {self.intensities.shape} intensities, "

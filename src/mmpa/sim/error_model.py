@@ -19,13 +19,13 @@ from mmpa.geometry import Array, T_to_vec6, vec6_to_T
 from mmpa.robot.description import DHParameters, RobotDescription
 
 __all__ = [
+    "PARKING_TABLE2",
     "CameraNoise",
     "ErrorModel",
     "ErrorModelConfig",
     "KinematicsError",
     "LidarNoise",
     "OdometryNoise",
-    "PARKING_TABLE2",
     "ParkingNoise",
 ]
 
@@ -156,9 +156,7 @@ class ErrorModel:
             update={"T_flange_camera_vec": tuple(float(x) for x in T_to_vec6(T_true))}
         )
         true_arm = nominal.arm.model_copy(update={"dh": true_dh})
-        true = nominal.with_updates(
-            arm=true_arm.model_dump(), camera=true_camera.model_dump()
-        )
+        true = nominal.with_updates(arm=true_arm.model_dump(), camera=true_camera.model_dump())
         # ~0.8 m lever arm from the joints to the tool: sigma_q = sigma_tool / 0.8
         joint_sigma = k.joint_repeatability_tool / 0.8
         return cls(config=config, nominal=nominal, true=true, joint_noise_sigma=joint_sigma)
