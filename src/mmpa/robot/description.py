@@ -107,7 +107,7 @@ class GripperDescription(_Frozen):
     """Two-finger parallel gripper (Robotiq 2F-85 class)."""
 
     stroke: float = 0.085  # m, fully open finger gap
-    length: float = 0.16  # m, flange to fingertip center (the TCP)
+    length: float = 0.15  # m, flange to fingertip center (the TCP)
     max_force: float = 110.0  # N
 
     @property

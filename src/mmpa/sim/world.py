@@ -1,0 +1,454 @@
+"""The digital twin: the TRUE world and robot in MuJoCo, driven through the robot interfaces.
+
+``SimWorld`` owns the MuJoCo model and data, steps the physics with the low-level controllers
+(wheel velocity, arm joint position, gripper position), and hands out simulated devices that
+implement the hardware-neutral protocols of ``mmpa.robot.interfaces``. Software must only
+use ``world.nominal`` (the robot it believes in), ``world.map_reflectors`` (surveyed, not
+true) and the devices; ``world.truth`` is for evaluation.
+
+Units: m, rad, s. Every random draw comes from the error model's seeded streams.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from ruckig import InputParameter, Result, Ruckig, Trajectory
+
+from mmpa.errors import InvalidInputError, SimulationError, UnreachableError
+from mmpa.geometry import Array, T_to_se2, make_T, wrap_angle
+from mmpa.robot.description import RobotDescription, default_robot
+from mmpa.robot.interfaces import Odometry
+from mmpa.sim.error_model import ErrorModel, ErrorModelConfig
+from mmpa.sim.mjcf import build_model
+from mmpa.sim.scene import SceneConfig, load_scene
+
+__all__ = ["GroundTruth", "SimArm", "SimBase", "SimGripper", "SimWorld"]
+
+_ARM_JOINTS = [f"joint{i}" for i in range(1, 7)]
+_OPTICAL_FROM_MUJOCO = np.diag([1.0, -1.0, -1.0])
+_CONTROL_EVERY = 5  # physics steps per odometry update (100 Hz at dt = 2 ms)
+
+
+def _T_from_xpos(xpos: np.ndarray, xmat: np.ndarray) -> Array:
+    return make_T(np.asarray(xmat).reshape(3, 3), xpos)
+
+
+@dataclass
+class _ArmMotion:
+    """A joint trajectory being tracked: ``q(t)`` for ``t`` in ``[t0, t0 + duration]``."""
+
+    t0: float
+    duration: float
+    sample: object  # Callable[[float], Array]
+
+
+class SimWorld:
+    """The simulated world with one robot.
+
+    Parameters
+    ----------
+    scene: the world (default: built-in ``default.yaml``).
+    robot: NOMINAL robot description (default: :func:`default_robot`).
+    errors: error model configuration; its seed fixes the robot instance.
+    site: where the robot starts (a site name of the scene).
+    episode: index that re-seeds per-episode noise streams (sensor noise, parking draws)
+        without changing the robot instance.
+    """
+
+    def __init__(
+        self,
+        scene: SceneConfig | None = None,
+        robot: RobotDescription | None = None,
+        errors: ErrorModelConfig | None = None,
+        site: str = "0",
+        episode: int = 0,
+    ) -> None:
+        self.scene = scene or load_scene()
+        self.nominal = robot or default_robot()
+        self.error_model = ErrorModel.sample(self.nominal, errors)
+        self.true_robot = self.error_model.true
+        self.episode = episode
+        start = self.scene.site(site)
+        built = build_model(self.scene, self.true_robot, start.pose2d)
+        self.model = built.compile()
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        self._base_qadr = m.jnt_qposadr[m.joint("base_free").id]
+        self._base_dadr = m.jnt_dofadr[m.joint("base_free").id]
+        self._arm_qadr = np.array([m.jnt_qposadr[m.joint(j).id] for j in _ARM_JOINTS])
+        self._arm_dadr = np.array([m.jnt_dofadr[m.joint(j).id] for j in _ARM_JOINTS])
+        self._arm_act = np.array([m.actuator(f"arm{i}").id for i in range(1, 7)])
+        self._wheel_act = (m.actuator("wheel_left_vel").id, m.actuator("wheel_right_vel").id)
+        self._grip_act = m.actuator("gripper").id
+        self._finger_qadr = m.jnt_qposadr[m.joint("finger_left_joint").id]
+        self._bump_body = m.body("speed_bump").id if self.scene.speed_bump else None
+        self._bump_pos = m.body_pos[self._bump_body].copy() if self._bump_body is not None else None
+        rng = self.error_model.rng
+        self._rng_joint = rng("joint_repeatability", episode)
+        self.map_reflectors = self.scene.reflector_positions() + rng("reflector_map").normal(
+            0.0,
+            self.error_model.config.lidar.reflector_map_sigma,
+            (len(self.scene.reflectors.positions), 2),
+        )
+        self._motion: _ArmMotion | None = None
+        self._steps = 0
+        self.base = SimBase(self)
+        self.arm = SimArm(self)
+        self.gripper = SimGripper(self)
+        self.truth = GroundTruth(self)
+        self._camera = None
+        self._lidar = None
+        self._photosensor = None
+        self._odometry = None
+        self.reset(site)
+
+    # --- devices --------------------------------------------------------------------------
+    @property
+    def camera(self):
+        if self._camera is None:
+            from mmpa.sim.sensors import SimCamera
+
+            self._camera = SimCamera(
+                self.model,
+                self.data,
+                self.true_robot.camera,
+                self.error_model.config.camera,
+                self.error_model.rng("camera", self.episode),
+                lambda: float(self.data.time),
+            )
+        return self._camera
+
+    @property
+    def lidar(self):
+        if self._lidar is None:
+            from mmpa.sim.sensors import SimLidar
+
+            self._lidar = SimLidar(
+                self.model,
+                self.data,
+                self.true_robot.lidar,
+                self.error_model.config.lidar,
+                self.error_model.rng("lidar", self.episode),
+                lambda: float(self.data.time),
+            )
+        return self._lidar
+
+    @property
+    def photosensor(self):
+        if self._photosensor is None:
+            from mmpa.sim.sensors import SimPhotoSensor
+
+            self._photosensor = SimPhotoSensor(self.model, self.data, self.true_robot.photosensor)
+        return self._photosensor
+
+    @property
+    def odometry(self):
+        if self._odometry is None:
+            from mmpa.sim.sensors import SimOdometry
+
+            self._odometry = SimOdometry(
+                self.true_robot.base,
+                self.error_model.config.odometry,
+                self.error_model.rng("odometry", self.episode),
+            )
+            self._odometry.update(self.truth.base_pose2d(), float(self.data.time))
+        return self._odometry
+
+    @property
+    def time(self) -> float:
+        """Simulation time (s)."""
+        return float(self.data.time)
+
+    # --- scene state ----------------------------------------------------------------------
+    def set_speed_bump(self, enabled: bool) -> None:
+        """Put the speed bump of Site 2' in place (or park it below the floor)."""
+        if self._bump_body is None:
+            if enabled:
+                raise InvalidInputError("this scene defines no speed bump")
+            return
+        pos = self._bump_pos.copy()
+        pos[2] = 0.0 if enabled else -1.0
+        self.model.body_pos[self._bump_body] = pos
+        mujoco.mj_forward(self.model, self.data)
+
+    @property
+    def speed_bump_enabled(self) -> bool:
+        return self._bump_body is not None and self.model.body_pos[self._bump_body][2] > -0.5
+
+    def reset(
+        self,
+        site: str | None = None,
+        pose2d: Array | None = None,
+        q_arm: Array | None = None,
+        settle: float = 0.5,
+    ) -> None:
+        """Place the robot at a site's park pose (or at ``pose2d`` = ``[x, y, yaw]``), arm at
+        ``q_arm`` (default: home), gripper open; enable the speed bump iff the site has one;
+        let the physics settle for ``settle`` s."""
+        if site is not None:
+            s = self.scene.site(site)
+            if pose2d is None:
+                pose2d = s.pose2d
+            self.set_speed_bump(s.speed_bump)
+        if pose2d is None:
+            pose2d = self.truth.base_pose2d()
+        pose2d = np.asarray(pose2d, float)
+        if pose2d.shape != (3,) or not np.all(np.isfinite(pose2d)):
+            raise InvalidInputError(f"pose2d must be finite [x, y, yaw], got {pose2d}")
+        q = np.asarray(self.nominal.arm.home if q_arm is None else q_arm, float)
+        d = self.data
+        mujoco.mj_resetData(self.model, d)
+        z0 = 0.07 if self.speed_bump_enabled else 0.001
+        d.qpos[self._base_qadr : self._base_qadr + 3] = (pose2d[0], pose2d[1], z0)
+        d.qpos[self._base_qadr + 3 : self._base_qadr + 7] = (
+            np.cos(pose2d[2] / 2),
+            0.0,
+            0.0,
+            np.sin(pose2d[2] / 2),
+        )
+        d.qpos[self._arm_qadr] = q
+        d.ctrl[self._arm_act] = q
+        d.ctrl[self._grip_act] = 0.0
+        self._motion = None
+        mujoco.mj_forward(self.model, d)
+        self._odometry = None
+        if settle > 0:
+            self.step(settle)
+
+    # --- physics --------------------------------------------------------------------------
+    def step(self, duration: float) -> None:
+        """Advance the physics by ``duration`` s, running the low-level controllers."""
+        if duration < 0 or not np.isfinite(duration):
+            raise InvalidInputError(f"duration must be a finite non-negative time, got {duration}")
+        n = int(round(duration / self.model.opt.timestep))
+        m, d = self.model, self.data
+        for _ in range(n):
+            if self._motion is not None:
+                t = d.time - self._motion.t0
+                d.ctrl[self._arm_act] = self._motion.sample(min(t, self._motion.duration))  # type: ignore[operator]
+                if t >= self._motion.duration:
+                    self._motion = None
+            mujoco.mj_step(m, d)
+            self._steps += 1
+            if self._steps % _CONTROL_EVERY == 0 and self._odometry is not None:
+                self._odometry.update(self.truth.base_pose2d(), float(d.time))
+        if not np.all(np.isfinite(d.qpos)):
+            raise SimulationError("physics diverged (NaN in state); check the commanded motion")
+
+    def close(self) -> None:
+        """Release the renderer (call before dropping the world)."""
+        if self._camera is not None:
+            self._camera.close()
+            self._camera = None
+
+    def __enter__(self) -> SimWorld:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class SimBase:
+    """Differential-drive base: body velocity commands become wheel velocity targets."""
+
+    def __init__(self, world: SimWorld) -> None:
+        self._w = world
+        self.v = 0.0
+        self.omega = 0.0
+
+    def set_velocity(self, v: float, w: float) -> None:
+        """``v`` m/s forward, ``w`` rad/s; clipped to the base's limits."""
+        if not (np.isfinite(v) and np.isfinite(w)):
+            raise InvalidInputError(f"base velocity must be finite, got v={v}, w={w}")
+        b = self._w.true_robot.base
+        v = float(np.clip(v, -b.max_linear_speed, b.max_linear_speed))
+        w = float(np.clip(w, -b.max_angular_speed, b.max_angular_speed))
+        self.v, self.omega = v, w
+        wl = (v - w * b.track_width / 2) / b.wheel_radius
+        wr = (v + w * b.track_width / 2) / b.wheel_radius
+        d = self._w.data
+        d.ctrl[self._w._wheel_act[0]] = wl
+        d.ctrl[self._w._wheel_act[1]] = wr
+
+    def stop(self) -> None:
+        self.set_velocity(0.0, 0.0)
+
+    def odometry(self) -> Odometry:
+        return self._w.odometry.read()
+
+
+class SimArm:
+    """Position-controlled arm following jerk-limited (ruckig) joint trajectories."""
+
+    def __init__(self, world: SimWorld) -> None:
+        self._w = world
+        a = world.nominal.arm
+        self.q_min, self.q_max = a.q_limits
+        self._vmax, self._amax, self._jmax = (
+            np.array(x) for x in (a.qd_max, a.qdd_max, a.qddd_max)
+        )
+
+    def joint_positions(self) -> Array:
+        """Encoder readings (rad), shape (6,)."""
+        return self._w.data.qpos[self._w._arm_qadr].copy()
+
+    def joint_velocities(self) -> Array:
+        return self._w.data.qvel[self._w._arm_dadr].copy()
+
+    def _check(self, q: Array) -> Array:
+        q = np.asarray(q, float)
+        if q.shape != (6,) or not np.all(np.isfinite(q)):
+            raise InvalidInputError(f"joint target must be 6 finite angles, got {q}")
+        bad = (q < self.q_min) | (q > self.q_max)
+        if np.any(bad):
+            j = int(np.argmax(bad))
+            raise UnreachableError(
+                f"joint {j + 1} target {q[j]:.4f} rad is outside its limits "
+                f"[{self.q_min[j]:.4f}, {self.q_max[j]:.4f}]"
+            )
+        return q
+
+    def plan(self, q_target: Array, min_duration: float = 0.0) -> tuple[float, object]:
+        """Jerk-limited time-optimal trajectory from the current state to ``q_target``.
+
+        Returns ``(duration, sample)`` where ``sample(t)`` gives the joint setpoint (6,).
+        """
+        q_target = self._check(q_target)
+        otg = Ruckig(6)
+        inp = InputParameter(6)
+        inp.current_position = self._w.data.ctrl[self._w._arm_act].tolist()
+        inp.current_velocity = [0.0] * 6
+        inp.current_acceleration = [0.0] * 6
+        inp.target_position = q_target.tolist()
+        inp.max_velocity = self._vmax.tolist()
+        inp.max_acceleration = self._amax.tolist()
+        inp.max_jerk = self._jmax.tolist()
+        if min_duration > 0:
+            inp.minimum_duration = min_duration
+        traj = Trajectory(6)
+        res = otg.calculate(inp, traj)
+        if res not in (Result.Working, Result.Finished):
+            raise SimulationError(f"ruckig could not plan the arm motion: {res}")
+
+        def sample(t: float) -> Array:
+            return np.asarray(traj.at_time(t)[0])
+
+        return float(traj.duration), sample
+
+    def move_joints(self, q: Array, duration: float | None = None, settle: float = 0.3) -> None:
+        """Move to ``q`` along a jerk-limited trajectory, then settle. The arm lands within its
+        repeatability (seeded noise) of the target, as a real arm does."""
+        q = self._check(q)
+        T, sample = self.plan(q, min_duration=duration or 0.0)
+        w = self._w
+        noise = w._rng_joint.normal(0.0, w.error_model.joint_noise_sigma, 6)
+        q_final = q + noise
+
+        def sample_noisy(t: float) -> Array:
+            return np.asarray(sample(t)) + noise * min(t / T, 1.0) if T > 0 else q_final  # type: ignore[operator]
+
+        w._motion = _ArmMotion(float(w.data.time), T, sample_noisy)
+        w.step(T + settle)
+
+    def follow(self, times: Array, q_path: Array) -> None:
+        """Track ``q_path`` (T, 6) at ``times`` (T,) s (linear interpolation between samples)."""
+        times = np.asarray(times, float)
+        q_path = np.asarray(q_path, float)
+        if q_path.ndim != 2 or q_path.shape[1] != 6 or times.shape != (q_path.shape[0],):
+            raise InvalidInputError(
+                f"need times (T,) and q_path (T, 6), got {times.shape}, {q_path.shape}"
+            )
+        if np.any(np.diff(times) <= 0):
+            raise InvalidInputError("path times must increase strictly")
+        for q in q_path:
+            self._check(q)
+        w = self._w
+        t_rel = times - times[0]
+
+        def sample(t: float) -> Array:
+            return np.array([np.interp(t, t_rel, q_path[:, j]) for j in range(6)])
+
+        w._motion = _ArmMotion(float(w.data.time), float(t_rel[-1]), sample)
+        w.step(float(t_rel[-1]) + 0.2)
+
+
+class SimGripper:
+    """Two-finger parallel gripper, 85 mm stroke; slide joints coupled by an equality."""
+
+    def __init__(self, world: SimWorld) -> None:
+        self._w = world
+        self._stroke = world.true_robot.gripper.stroke
+
+    def width(self) -> float:
+        q = self._w.data.qpos[self._w._finger_qadr]
+        return float(self._stroke - 2.0 * q)
+
+    def open(self) -> None:
+        self._w.data.ctrl[self._w._grip_act] = 0.0
+        self._w.step(0.6)
+
+    def close(self) -> bool:
+        """Close the fingers; True if they stopped on an object (gap > 2 mm)."""
+        self._w.data.ctrl[self._w._grip_act] = self._w.model.actuator_ctrlrange[
+            self._w._grip_act, 1
+        ]
+        self._w.step(0.8)
+        return self.width() > 0.002
+
+
+class GroundTruth:
+    """TRUE poses, for evaluation only. Algorithm code must never call these."""
+
+    def __init__(self, world: SimWorld) -> None:
+        self._w = world
+
+    def _body(self, name: str) -> Array:
+        b = self._w.data.body(name)
+        return _T_from_xpos(b.xpos, b.xmat)
+
+    def T_map_base_link(self) -> Array:
+        return self._body("base_link")
+
+    def base_pose2d(self) -> Array:
+        """``[x, y, yaw]`` of base_link in map."""
+        return T_to_se2(self.T_map_base_link())
+
+    def T_map_arm_base(self) -> Array:
+        return self._body("arm_base")
+
+    def T_map_flange(self) -> Array:
+        return self._body("flange")
+
+    def T_map_tcp(self) -> Array:
+        s = self._w.data.site("tcp")
+        return _T_from_xpos(s.xpos, s.xmat)
+
+    def T_map_camera(self) -> Array:
+        """Optical frame of the wrist camera (z forward, x right, y down)."""
+        c = self._w.data.cam("wrist_camera")
+        T = _T_from_xpos(c.xpos, c.xmat)
+        T[:3, :3] = T[:3, :3] @ _OPTICAL_FROM_MUJOCO
+        return T
+
+    def T_map_object(self, name: str) -> Array:
+        return self._body(name)
+
+    def reflector_positions(self) -> Array:
+        return self._w.scene.reflector_positions()
+
+    def fiducial_positions(self) -> Array:
+        """(N, 3) centers of the fiducial reflector discs in map."""
+        fa = self._w.scene.fiducial_artifact
+        if fa is None:
+            return np.zeros((0, 3))
+        return np.array(
+            [self._w.data.geom(f"fiducial_{i}_reflector").xpos for i in range(len(fa.fiducials))]
+        )
+
+
+def yaw_of(T: Array) -> float:
+    """Heading of a transform's x axis (rad)."""
+    return float(wrap_angle(np.arctan2(T[1, 0], T[0, 0])))
