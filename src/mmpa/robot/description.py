@@ -66,11 +66,23 @@ class ArmDescription(_Frozen):
     qddd_max: tuple[float, ...] = (40.0, 40.0, 40.0, 60.0, 60.0, 60.0)  # rad/s^3, for ruckig
     reach: float = 0.85  # m, from the shoulder axis
     link_masses: tuple[float, ...] = (3.761, 8.058, 2.846, 1.37, 1.3, 0.365)  # kg
-    home: tuple[float, ...] = (0.0, -1.8, 1.9, -1.67, -1.5708, 0.0)  # camera looks ahead-down
+    home: tuple[float, ...] = (0.0, -1.8, 1.9, -1.67, -1.5708, 0.0)  # tucked, tool down
+    # wrist camera 0.40 m ahead of and 0.85 m above the arm base, looking at the point 0.80 m
+    # ahead and 0.40 m up (the back of a 0.72 m desk 0.75 m ahead of base_link): nominal IK
+    view_bench: tuple[float, ...] = (2.532, -1.964, 1.165, -1.401, -1.181, -0.481)
 
     @model_validator(mode="after")
     def _limits(self) -> ArmDescription:
-        for name in ("q_min", "q_max", "qd_max", "qdd_max", "qddd_max", "home", "link_masses"):
+        for name in (
+            "q_min",
+            "q_max",
+            "qd_max",
+            "qdd_max",
+            "qddd_max",
+            "home",
+            "view_bench",
+            "link_masses",
+        ):
             if len(getattr(self, name)) != 6:
                 raise ValueError(f"arm.{name} needs 6 values")
         if any(lo >= hi for lo, hi in zip(self.q_min, self.q_max, strict=True)):

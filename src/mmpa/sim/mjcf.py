@@ -91,7 +91,8 @@ class _Builder:
         ET.SubElement(vis, "global", offwidth="1280", offheight="960")
         ET.SubElement(vis, "quality", shadowsize="2048")
         ET.SubElement(vis, "headlight", ambient="0.35 0.35 0.35", diffuse="0.4 0.4 0.4")
-        ET.SubElement(vis, "map", znear="0.01", zfar="60")
+        # near plane = znear * extent (~20 m here): 4 cm, below the camera min range
+        ET.SubElement(vis, "map", znear="0.002", zfar="3")
         self.asset = ET.SubElement(self.root, "asset")
         self.world = ET.SubElement(self.root, "worldbody")
         self.actuators = ET.SubElement(self.root, "actuator")

@@ -24,6 +24,7 @@ from mmpa.robot.interfaces import Odometry
 from mmpa.sim.error_model import ErrorModel, ErrorModelConfig
 from mmpa.sim.mjcf import build_model
 from mmpa.sim.scene import SceneConfig, load_scene
+from mmpa.sim.sensors import SimCamera, SimLidar, SimOdometry, SimPhotoSensor
 
 __all__ = ["GroundTruth", "SimArm", "SimBase", "SimGripper", "SimWorld"]
 
@@ -99,18 +100,16 @@ class SimWorld:
         self.arm = SimArm(self)
         self.gripper = SimGripper(self)
         self.truth = GroundTruth(self)
-        self._camera = None
-        self._lidar = None
-        self._photosensor = None
-        self._odometry = None
+        self._camera: SimCamera | None = None
+        self._lidar: SimLidar | None = None
+        self._photosensor: SimPhotoSensor | None = None
         self.reset(site)
 
     # --- devices --------------------------------------------------------------------------
     @property
-    def camera(self):
+    def camera(self) -> SimCamera:
+        """Wrist RGB-D camera (created on first use: it needs an OpenGL context)."""
         if self._camera is None:
-            from mmpa.sim.sensors import SimCamera
-
             self._camera = SimCamera(
                 self.model,
                 self.data,
@@ -122,10 +121,8 @@ class SimWorld:
         return self._camera
 
     @property
-    def lidar(self):
+    def lidar(self) -> SimLidar:
         if self._lidar is None:
-            from mmpa.sim.sensors import SimLidar
-
             self._lidar = SimLidar(
                 self.model,
                 self.data,
@@ -137,24 +134,14 @@ class SimWorld:
         return self._lidar
 
     @property
-    def photosensor(self):
+    def photosensor(self) -> SimPhotoSensor:
         if self._photosensor is None:
-            from mmpa.sim.sensors import SimPhotoSensor
-
             self._photosensor = SimPhotoSensor(self.model, self.data, self.true_robot.photosensor)
         return self._photosensor
 
     @property
-    def odometry(self):
-        if self._odometry is None:
-            from mmpa.sim.sensors import SimOdometry
-
-            self._odometry = SimOdometry(
-                self.true_robot.base,
-                self.error_model.config.odometry,
-                self.error_model.rng("odometry", self.episode),
-            )
-            self._odometry.update(self.truth.base_pose2d(), float(self.data.time))
+    def odometry(self) -> SimOdometry:
+        """Wheel odometry; every :meth:`reset` restarts it with its origin at the base."""
         return self._odometry
 
     @property
@@ -214,9 +201,15 @@ class SimWorld:
         d.ctrl[self._grip_act] = 0.0
         self._motion = None
         mujoco.mj_forward(self.model, d)
-        self._odometry = None
+        self._odometry = SimOdometry(
+            self.true_robot.base,
+            self.error_model.config.odometry,
+            self.error_model.rng("odometry", self.episode),
+        )
         if settle > 0:
             self.step(settle)
+        self._odometry.reset()
+        self._odometry.update(self.truth.base_pose2d(), float(d.time))
 
     # --- physics --------------------------------------------------------------------------
     def step(self, duration: float) -> None:
@@ -233,7 +226,7 @@ class SimWorld:
                     self._motion = None
             mujoco.mj_step(m, d)
             self._steps += 1
-            if self._steps % _CONTROL_EVERY == 0 and self._odometry is not None:
+            if self._steps % _CONTROL_EVERY == 0:
                 self._odometry.update(self.truth.base_pose2d(), float(d.time))
         if not np.all(np.isfinite(d.qpos)):
             raise SimulationError("physics diverged (NaN in state); check the commanded motion")
@@ -277,7 +270,7 @@ class SimBase:
         self.set_velocity(0.0, 0.0)
 
     def odometry(self) -> Odometry:
-        return self._w.odometry.read()
+        return self._w.odometry.odometry()
 
 
 class SimArm:

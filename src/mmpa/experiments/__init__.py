@@ -1,0 +1,1 @@
+"""Experiment runners: they own loops, evaluation against ground truth and output folders."""
