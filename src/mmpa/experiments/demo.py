@@ -196,6 +196,10 @@ def snapshot(cfg: DemoConfig, site: str, out: str | Path) -> dict:
     return summary
 
 
+def _view(cfg: DemoConfig, world: SimWorld) -> Array:
+    return np.array(cfg.arm_view if cfg.arm_view is not None else world.nominal.arm.view_bench)
+
+
 def _T2(pose2d: Array) -> Array:
     from mmpa.geometry import se2_to_T
 

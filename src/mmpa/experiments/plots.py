@@ -150,7 +150,9 @@ def save_topdown(
     b = robot.base
     c, s = np.cos(th), np.sin(th)
     lx, ly = b.body_size[0] / 2, b.body_size[1] / 2
-    corners = np.array([[lx, ly], [-lx, ly], [-lx, -ly], [lx, -ly]]) + [b.body_offset_x, 0]
+    corners = np.array([[lx, ly], [-lx, ly], [-lx, -ly], [lx, -ly]]) + np.array(
+        [b.body_offset_x, 0]
+    )
     R = np.array([[c, -s], [s, c]])
     ax.add_patch(
         Polygon(

@@ -216,7 +216,7 @@ class SimWorld:
         """Advance the physics by ``duration`` s, running the low-level controllers."""
         if duration < 0 or not np.isfinite(duration):
             raise InvalidInputError(f"duration must be a finite non-negative time, got {duration}")
-        n = int(round(duration / self.model.opt.timestep))
+        n = round(duration / self.model.opt.timestep)
         m, d = self.model, self.data
         for _ in range(n):
             if self._motion is not None:
