@@ -134,6 +134,8 @@ def vec6_to_T(v: ArrayLike) -> Array:
     v = np.asarray(v, dtype=float)
     if v.shape != (6,):
         raise InvalidInputError(f"6D pose vector must have shape (6,), got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise InvalidInputError(f"6D pose vector contains NaN or inf: {v}")
     return make_T(rpy_to_R(*v[3:]), v[:3])
 
 
@@ -160,21 +162,38 @@ def hat(w: ArrayLike) -> Array:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
+def _as_twist(xi: ArrayLike) -> Array:
+    xi = np.asarray(xi, dtype=float)
+    if xi.shape != (6,):
+        raise InvalidInputError(f"twist must have shape (6,) as [v, w], got {xi.shape}")
+    if not np.all(np.isfinite(xi)):
+        raise InvalidInputError("twist contains NaN or inf")
+    return xi
+
+
+def _so3_coeffs(th: float) -> tuple[float, float, float]:
+    """``sin(th)/th, (1-cos th)/th^2, (th-sin th)/th^3`` without cancellation near 0."""
+    if th < 1e-2:  # Taylor series; the next terms are below 1e-17
+        t2 = th * th
+        a = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
+        b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+        c = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
+        return a, b, c
+    a = np.sin(th) / th
+    b = 2.0 * np.sin(0.5 * th) ** 2 / th**2
+    c = (th - np.sin(th)) / th**3
+    return float(a), float(b), float(c)
+
+
 def exp_se3(xi: ArrayLike) -> Array:
     """Exponential map of a twist ``xi = [v, w]`` (6,) to SE(3) (closed-form Rodrigues)."""
-    xi = np.asarray(xi, dtype=float)
+    xi = _as_twist(xi)
     v, w = xi[:3], xi[3:]
-    th = np.linalg.norm(w)
+    th = float(np.linalg.norm(w))
     W = hat(w)
-    if th < 1e-9:
-        R = np.eye(3) + W
-        V = np.eye(3) + 0.5 * W
-    else:
-        a = np.sin(th) / th
-        b = (1.0 - np.cos(th)) / th**2
-        c = (th - np.sin(th)) / th**3
-        R = np.eye(3) + a * W + b * W @ W
-        V = np.eye(3) + b * W + c * W @ W
+    a, b, c = _so3_coeffs(th)
+    R = np.eye(3) + a * W + b * W @ W
+    V = np.eye(3) + b * W + c * W @ W
     return make_T(R, V @ v)
 
 
@@ -182,14 +201,15 @@ def log_se3(T: ArrayLike) -> Array:
     """Logarithm of SE(3): the twist ``[v, w]`` (6,) with ``exp_se3(log_se3(T)) == T``."""
     T = _as_T(T)
     w = Rotation.from_matrix(T[:3, :3]).as_rotvec()
-    th = np.linalg.norm(w)
+    th = float(np.linalg.norm(w))
     W = hat(w)
-    if th < 1e-9:
-        V_inv = np.eye(3) - 0.5 * W
+    # V^-1 = I - W/2 + k W^2 with k = (1 - (th/2) cot(th/2)) / th^2
+    if th < 1e-2:  # Taylor series (the closed form cancels catastrophically near 0)
+        t2 = th * th
+        k = 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0
     else:
-        a = np.sin(th) / th
-        b = (1.0 - np.cos(th)) / th**2
-        V_inv = np.eye(3) - 0.5 * W + (1.0 - a / (2.0 * b)) / th**2 * W @ W
+        k = (1.0 - 0.5 * th / np.tan(0.5 * th)) / th**2
+    V_inv = np.eye(3) - 0.5 * W + k * W @ W
     return np.concatenate([V_inv @ T[:3, 3], w])
 
 
