@@ -40,7 +40,8 @@ Progress = Callable[[str, float], None]
 class DemoConfig(BaseModel):
     """Configuration of ``mmpa demo`` and ``mmpa sim snapshot``."""
 
-    model_config = ConfigDict(extra="forbid")
+    # site names look like numbers ("2"): --set goal_site=2 must stay a string
+    model_config = ConfigDict(extra="forbid", coerce_numbers_to_str=True)
 
     scene: str | None = None  # path of a scene YAML; None: the built-in world
     start_site: str = "0"

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -35,8 +36,8 @@ def save_depth(path: str | Path, depth: np.ndarray, max_depth: float | None = No
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     shown = np.ma.masked_where(~valid, depth)
-    im = ax.imshow(shown, cmap="turbo", vmin=0.0, vmax=vmax)
-    im.cmap.set_bad("black")
+    cmap = matplotlib.colormaps["turbo"].with_extremes(bad="black")
+    im = ax.imshow(shown, cmap=cmap, vmin=0.0, vmax=vmax)
     ax.set_title(f"depth (m), {100 * (1 - valid.mean()):.1f} % invalid (black)")
     ax.axis("off")
     fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="m")
