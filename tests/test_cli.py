@@ -73,7 +73,7 @@ def test_set_overrides_reach_the_config():
 def test_bad_overrides_name_the_problem():
     with pytest.raises(ConfigError, match="key=value"):
         apply_overrides({}, ["seed"])
-    with pytest.raises(ConfigError, match="controller.max_v"):
+    with pytest.raises(ConfigError, match=r"controller\.max_v"):
         load_config(DemoConfig, None, ["controller.max_v=fast"])
     with pytest.raises(ConfigError, match="nonsense"):
         load_config(DemoConfig, None, ["nonsense=1"])
