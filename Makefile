@@ -15,7 +15,7 @@ demo: setup
 	$(VENV)/bin/mmpa demo --out runs/demo
 
 test: setup
-	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q
 
 test-slow: setup

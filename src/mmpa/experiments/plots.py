@@ -32,12 +32,13 @@ def save_depth(path: str | Path, depth: np.ndarray, max_depth: float | None = No
     """Write a depth image (m, 0 = invalid) as a turbo colormap with a colorbar."""
     valid = depth > 0
     vmax = max_depth or (float(np.percentile(depth[valid], 99)) if valid.any() else 1.0)
+    vmin = float(np.percentile(depth[valid], 1)) if valid.any() else 0.0
     fig = Figure(figsize=(7.2, 4.8), dpi=100)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     shown = np.ma.masked_where(~valid, depth)
     cmap = matplotlib.colormaps["turbo"].with_extremes(bad="black")
-    im = ax.imshow(shown, cmap=cmap, vmin=0.0, vmax=vmax)
+    im = ax.imshow(shown, cmap=cmap, vmin=vmin, vmax=vmax)
     ax.set_title(f"depth (m), {100 * (1 - valid.mean()):.1f} % invalid (black)")
     ax.axis("off")
     fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="m")
