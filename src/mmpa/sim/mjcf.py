@@ -33,7 +33,7 @@ __all__ = ["GROUP", "BuiltModel", "build_model", "desk_item_pose"]
 
 GROUP = {"world": 0, "objects": 1, "reflectors": 2, "robot": 3, "robot_visual": 4}
 
-_OPTICAL_FROM_MUJOCO = np.diag([1.0, -1.0, -1.0])  # MuJoCo cameras look along -z, y up
+OPTICAL_FROM_MUJOCO = np.diag([1.0, -1.0, -1.0])  # MuJoCo cameras look along -z, y up
 _ROBOT_COLLISION = {"contype": "2", "conaffinity": "1", "group": str(GROUP["robot"])}
 _ROBOT_VISUAL = {"contype": "0", "conaffinity": "0", "group": str(GROUP["robot_visual"])}
 
@@ -745,7 +745,7 @@ class _Builder:
             group="4",
         )
         T_cam_mj = rb.camera.T_flange_camera.copy()
-        T_cam_mj[:3, :3] = T_cam_mj[:3, :3] @ _OPTICAL_FROM_MUJOCO
+        T_cam_mj[:3, :3] = T_cam_mj[:3, :3] @ OPTICAL_FROM_MUJOCO
         ET.SubElement(
             flange,
             "camera",

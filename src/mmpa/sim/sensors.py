@@ -39,6 +39,7 @@ from mmpa.robot.description import (
 )
 from mmpa.robot.interfaces import LaserScan, Odometry, RGBDFrame
 from mmpa.sim.error_model import CameraNoise, LidarNoise, OdometryNoise
+from mmpa.sim.mjcf import OPTICAL_FROM_MUJOCO
 from mmpa.sim.noise import (
     angle_diff,
     color_noise,
@@ -68,7 +69,6 @@ RAY_GEOMGROUP = np.array([1, 1, 1, 0, 0, 0], dtype=np.uint8)
 
 _REFLECTOR_RE = re.compile(r"^reflector_\d+$")
 _FIDUCIAL_REFLECTOR_RE = re.compile(r"^fiducial_\d+_reflector$")
-_OPTICAL_FROM_MUJOCO = np.diag([1.0, -1.0, -1.0])
 
 # Lidar intensity model: relative noise on returns, reference range of the diffuse falloff.
 _REFLECTOR_INTENSITY_REL_SIGMA = 0.02
@@ -98,7 +98,7 @@ def T_world_camera_optical(model: mujoco.MjModel, data: mujoco.MjData, camera: s
     """TRUE pose of a MuJoCo camera's optical frame (z forward, x right, y down) in the world."""
     cid = _lookup(model, mujoco.mjtObj.mjOBJ_CAMERA, camera, "camera", model.ncam)
     T = np.eye(4)
-    T[:3, :3] = data.cam_xmat[cid].reshape(3, 3) @ _OPTICAL_FROM_MUJOCO
+    T[:3, :3] = data.cam_xmat[cid].reshape(3, 3) @ OPTICAL_FROM_MUJOCO
     T[:3, 3] = data.cam_xpos[cid]
     return T
 

@@ -24,12 +24,18 @@ from mmpa.robot.interfaces import Odometry
 from mmpa.sim.error_model import ErrorModel, ErrorModelConfig
 from mmpa.sim.mjcf import build_model
 from mmpa.sim.scene import SceneConfig, load_scene
-from mmpa.sim.sensors import SimCamera, SimLidar, SimOdometry, SimPhotoSensor
+from mmpa.sim.sensors import (
+    CAMERA_NAME,
+    SimCamera,
+    SimLidar,
+    SimOdometry,
+    SimPhotoSensor,
+    T_world_camera_optical,
+)
 
 __all__ = ["GroundTruth", "SimArm", "SimBase", "SimGripper", "SimWorld"]
 
 _ARM_JOINTS = [f"joint{i}" for i in range(1, 7)]
-_OPTICAL_FROM_MUJOCO = np.diag([1.0, -1.0, -1.0])
 _CONTROL_EVERY = 5  # physics steps per odometry update (100 Hz at dt = 2 ms)
 
 
@@ -421,10 +427,7 @@ class GroundTruth:
 
     def T_map_camera(self) -> Array:
         """Optical frame of the wrist camera (z forward, x right, y down)."""
-        c = self._w.data.cam("wrist_camera")
-        T = _T_from_xpos(c.xpos, c.xmat)
-        T[:3, :3] = T[:3, :3] @ _OPTICAL_FROM_MUJOCO
-        return T
+        return T_world_camera_optical(self._w.model, self._w.data, CAMERA_NAME)
 
     def T_map_object(self, name: str) -> Array:
         return self._body(name)
