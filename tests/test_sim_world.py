@@ -49,16 +49,6 @@ ZERO_KINEMATICS = ErrorModelConfig(
     )
 )
 
-# Known defects of the twin (reported; remove the marker when fixed - strict: an unexpected
-# pass fails the run so that nobody forgets).
-BASE_CANNOT_CLIMB_BUMP = pytest.mark.xfail(
-    strict=True,
-    reason="mjcf.py build_robot: base_body clearance 0.05 m equals the 0.05 m bump height, the "
-    "'frictionless' caster (condim=1) gets friction from the floor/bump (MuJoCo takes the max "
-    "condim of a pair), and the CoM is 2.8 cm behind the axle at 0.33 m height, so the base "
-    "high-centres on the bump / tips onto its nose",
-)
-
 
 def _rpy(world: SimWorld) -> np.ndarray:
     """``[z, roll, pitch, yaw]`` of the TRUE base_link."""
@@ -173,12 +163,6 @@ def test_site2_prime_puts_the_bump_under_the_base(world):
     assert _rpy(world)[:3] == pytest.approx((z2, r2, p2), abs=1e-4)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="world.py reset(): the 0.5 s settle is too short at Site 2' (the base drops from 7 cm "
-    "and rocks on its wheels, CoM 2.8 cm behind the axle, for ~1.5 s), and once settled the "
-    "velocity-servoed wheels cannot hold on the slope: it creeps ~5 mm and ~1 deg per 10 s",
-)
 def test_site2_prime_reset_is_settled(world):
     world.reset(site="2'")
     before = world.truth.T_map_base_link()
@@ -200,7 +184,6 @@ def _drive_logging(world: SimWorld, v: float, duration: float) -> tuple[float, f
     return math.degrees(mr), math.degrees(mp), mz
 
 
-@BASE_CANNOT_CLIMB_BUMP
 def test_drive_onto_the_site2_prime_bump(world):
     """Park the physics way: approach Site 2' along its heading from 1 m before the ridge."""
     site = world.scene.site("2'")
@@ -229,7 +212,6 @@ def open_bump_world():
     w.close()
 
 
-@BASE_CANNOT_CLIMB_BUMP
 def test_drive_across_the_bump(open_bump_world):
     w = open_bump_world
     w.set_speed_bump(True)
@@ -426,11 +408,6 @@ def test_gripper_open_and_close_on_nothing_width(world):
     assert world.gripper.width() == pytest.approx(0.085, abs=1e-3)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="world.py SimGripper.close: returns width() > 0.002, but fully closed the width is "
-    "stroke - 2 * (stroke/2 - 0.001) = 0.002 m (+1e-13), so an empty grasp reports True",
-)
 def test_close_on_nothing_reports_no_object(world):
     world.reset(site="0")
     assert world.gripper.close() is False
@@ -489,11 +466,6 @@ def test_grasped_cube_rises_with_the_gripper(grasp):
     assert grasp["width_after_lift"] == pytest.approx(grasp["width"], abs=0.002)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="mjcf.py finger pads: default soft contact (solref 0.02) lets the 110 N grip sink "
-    "3.3 mm per side into the 50 g cube, so width() reads 43.3 mm for a 50 mm cube",
-)
 def test_grasp_width_measures_the_cube(grasp):
     assert grasp["width"] == pytest.approx(0.05, abs=0.005)
 
@@ -554,12 +526,6 @@ def test_world_without_speed_bump_refuses_to_enable_it():
         w.close()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="world.py SimWorld.step: after mj_step, xpos/site_xpos/cam_xpos (ground truth, "
-    "camera, lidar) are computed from the qpos BEFORE the last integration, while encoders read "
-    "qpos: 1.1 mm apart at 0.6 m/s, ~2.5 mm mid arm motion. Fix: mj_forward at the end of step()",
-)
 def test_truth_is_in_step_with_the_state(world):
     world.reset(site="0")
     world.base.set_velocity(0.6, 0.0)

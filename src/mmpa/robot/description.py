@@ -109,7 +109,10 @@ class BaseDescription(_Frozen):
     caster_x: float = -0.28  # caster position along x in base_link
     body_size: tuple[float, float, float] = (0.70, 0.52, 0.34)  # box, m
     body_offset_x: float = -0.05  # body box center along x in base_link
-    mass: float = 60.0
+    mass: float = 60.0  # total, of which ballast_mass sits low behind the axle
+    ballast_mass: float = 35.0
+    ballast_x: float = -0.18
+    ground_clearance: float = 0.08  # clears the 50 mm speed bump of Site 2'
     max_wheel_speed: float = 12.0  # rad/s
     max_linear_speed: float = 0.6  # m/s
     max_angular_speed: float = 1.2  # rad/s

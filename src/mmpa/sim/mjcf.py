@@ -541,7 +541,7 @@ class _Builder:
         )
         ET.SubElement(base, "freejoint", name="base_free")
         bx, by, bz = b.body_size
-        clearance = 0.05
+        clearance = b.ground_clearance
         ET.SubElement(
             base,
             "geom",
@@ -549,9 +549,22 @@ class _Builder:
             type="box",
             pos=_f(b.body_offset_x, 0, clearance + bz / 2),
             size=_f(bx / 2, by / 2, bz / 2),
-            mass=_f(b.mass),
+            mass=_f(b.mass - b.ballast_mass),
             rgba="0.92 0.92 0.94 1",
             **_ROBOT_COLLISION,
+        )
+        # batteries low and behind the axle keep the centre of mass over the wheel-caster
+        # support when the arm reaches forward or the base brakes
+        ET.SubElement(
+            base,
+            "geom",
+            name="base_ballast",
+            type="box",
+            pos=_f(b.ballast_x, 0, clearance + 0.03),
+            size=_f(0.12, 0.15, 0.03),
+            mass=_f(b.ballast_mass),
+            rgba="0.3 0.3 0.3 1",
+            **_ROBOT_VISUAL,
         )
         ET.SubElement(
             base,
@@ -596,12 +609,17 @@ class _Builder:
                 rgba="0.1 0.1 0.1 1",
                 **_ROBOT_COLLISION,
             )
+            # integrated-velocity servo: the wheel tracks the integral of the commanded
+            # speed, so a stopped base holds its position on a slope (a plain velocity servo
+            # lets it creep down the speed bump)
             ET.SubElement(
                 self.actuators,
-                "velocity",
+                "intvelocity",
                 name=f"wheel_{side}_vel",
                 joint=f"wheel_{side}_joint",
+                kp="3000",
                 kv="150",
+                actrange="-1e9 1e9",
                 ctrlrange=_f(-b.max_wheel_speed, b.max_wheel_speed),
                 forcerange="-60 60",
             )
@@ -614,6 +632,7 @@ class _Builder:
             size=_f(b.caster_radius),
             pos=_f(b.caster_x, 0, b.caster_radius),
             condim="1",
+            priority="1",  # the contact takes the caster's condim (frictionless), not the floor's
             mass="1.0",
             rgba="0.2 0.2 0.2 1",
             **_ROBOT_COLLISION,
@@ -802,6 +821,8 @@ class _Builder:
                 mass="0.05",
                 friction="1.5 0.02 0.001",
                 condim="4",
+                solref="0.004 1",  # stiff pads: a 110 N grip sinks < 1.5 mm into the object
+                solimp="0.99 0.999 0.001",
                 rgba="0.25 0.25 0.25 1",
                 **_ROBOT_COLLISION,
             )

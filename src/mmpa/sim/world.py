@@ -214,6 +214,11 @@ class SimWorld:
         )
         if settle > 0:
             self.step(settle)
+            # a base dropped onto the speed bump rocks for a while: wait until it rests
+            for _ in range(30):
+                if np.linalg.norm(d.qvel[self._base_dadr : self._base_dadr + 6]) < 2e-3:
+                    break
+                self.step(0.1)
         self._odometry.reset()
         self._odometry.update(self.truth.base_pose2d(), float(d.time))
 
@@ -236,6 +241,9 @@ class SimWorld:
                 self._odometry.update(self.truth.base_pose2d(), float(d.time))
         if not np.all(np.isfinite(d.qpos)):
             raise SimulationError("physics diverged (NaN in state); check the commanded motion")
+        # mj_step leaves body poses at the start of the last step; bring them (ground truth,
+        # cameras, ray casts) level with the joint state the encoders report
+        mujoco.mj_forward(m, d)
 
     def close(self) -> None:
         """Release the renderer (call before dropping the world)."""
@@ -390,12 +398,12 @@ class SimGripper:
         self._w.step(0.6)
 
     def close(self) -> bool:
-        """Close the fingers; True if they stopped on an object (gap > 2 mm)."""
+        """Close the fingers; True if they stopped on an object (gap > 5 mm; empty: 2 mm)."""
         self._w.data.ctrl[self._w._grip_act] = self._w.model.actuator_ctrlrange[
             self._w._grip_act, 1
         ]
         self._w.step(0.8)
-        return self.width() > 0.002
+        return self.width() > 0.005
 
 
 class GroundTruth:
