@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from mmpa.config import save_config
 from mmpa.errors import MMPAError
 from mmpa.experiments import plots
-from mmpa.geometry import Array, T_to_vec6, apply, inv, wrap_angle
+from mmpa.geometry import Array, T_to_vec6, apply, inv, se2_to_T, wrap_angle
 from mmpa.navigation import GoToPoseConfig, go_to_pose_command
 from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.scene import load_scene
@@ -143,7 +143,7 @@ def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None)
         world.step(0.5)
         drive_time = world.time
         final = world.truth.base_pose2d()
-        T_err = inv(_T2(goal)) @ world.truth.T_map_base_link()
+        T_err = inv(se2_to_T(*goal)) @ world.truth.T_map_base_link()
         if progress is not None:
             progress("capturing", 1.0)
         extra = _capture(world, out, cfg, q_view)
@@ -199,12 +199,6 @@ def snapshot(cfg: DemoConfig, site: str, out: str | Path) -> dict:
 
 def _view(cfg: DemoConfig, world: SimWorld) -> Array:
     return np.array(cfg.arm_view if cfg.arm_view is not None else world.nominal.arm.view_bench)
-
-
-def _T2(pose2d: Array) -> Array:
-    from mmpa.geometry import se2_to_T
-
-    return se2_to_T(*pose2d)
 
 
 def _write_summary(out: Path, summary: dict) -> None:

@@ -24,10 +24,10 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from mmpa.geometry import Array, make_T, rot_x, rot_z, trans
+from mmpa.geometry import Array, make_T, rot_x, rot_y, rot_z, trans
 from mmpa.robot.description import RobotDescription
 from mmpa.sim import textures
-from mmpa.sim.scene import DeskItem, SceneConfig, Workbench
+from mmpa.sim.scene import DeskItem, GraspObject, SceneConfig, Workbench
 
 __all__ = ["GROUP", "BuiltModel", "build_model", "desk_item_pose"]
 
@@ -55,9 +55,7 @@ def _f(*xs: float) -> str:
 
 def _pose_attrs(T: Array) -> dict[str, str]:
     """``pos`` and ``quat`` (w, x, y, z) attributes of a 4x4 transform."""
-    q = np.empty(4)
-    mujoco.mju_mat2Quat(q, np.ascontiguousarray(T[:3, :3]).ravel())
-    return {"pos": _f(*T[:3, 3]), "quat": _f(*q)}
+    return {"pos": _f(*T[:3, 3]), "quat": _f(*_quat_of(T[:3, :3]))}
 
 
 def _yaw_quat(yaw: float) -> str:
@@ -386,7 +384,7 @@ class _Builder:
                 (0, 0, 0.007),
                 type="capsule",
                 size=_f(0.006, 0.045),
-                quat=_f(*_quat_of(rot_z(yaw) @ _rot_y(np.pi / 2))),
+                quat=_f(*_quat_of(rot_z(yaw) @ rot_y(np.pi / 2))),
                 rgba="0.85 0.9 0.95 1",
             )
             geom("bulb", (0.055, 0, 0.011), type="sphere", size=_f(0.011), rgba="0.9 0.3 0.2 1")
@@ -439,7 +437,7 @@ class _Builder:
             lx, ly, lz = item.size or (0.08, 0.08, 0.08)
             geom("box", (0, 0, lz / 2), type="box", size=_f(lx / 2, ly / 2, lz / 2), rgba=rgba)
 
-    def build_grasp_object(self, obj) -> None:
+    def build_grasp_object(self, obj: GraspObject) -> None:
         body = ET.SubElement(self.world, "body", name=obj.name, pos=_f(*obj.position))
         ET.SubElement(body, "freejoint", name=f"{obj.name}_free")
         rgba = _f(*obj.color, 1.0)
@@ -680,7 +678,7 @@ class _Builder:
         torque = (150.0, 150.0, 150.0, 28.0, 28.0, 28.0)
         kp = (4000.0, 4000.0, 3000.0, 800.0, 800.0, 600.0)
         A0 = [
-            rot_z_T(off[i]) @ trans(z=d[i]) @ trans(x=a[i]) @ make_T(rot_x(alpha[i]))
+            make_T(rot_z(off[i])) @ trans(z=d[i]) @ trans(x=a[i]) @ make_T(rot_x(alpha[i]))
             for i in range(6)
         ]
         for i in range(6):
@@ -855,15 +853,6 @@ class _Builder:
             ctrlrange=_f(0, half - 0.001),
             forcerange=_f(-g.max_force, g.max_force),
         )
-
-
-def rot_z_T(a: float) -> Array:
-    return make_T(rot_z(a))
-
-
-def _rot_y(a: float) -> Array:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
 def _quat_of(R: Array) -> Array:
