@@ -31,10 +31,14 @@ fi
 "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 11))' || {
   echo "[setup] mmpa needs Python >= 3.11; set PYTHON=python3.11" >&2; exit 1; }
 [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
-stamp=$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -c1-16)-$FLAVOR
+stamp=$(cat pyproject.toml constraints.txt scripts/setup.sh | sha256sum | cut -c1-16)-$FLAVOR
 if [ "$(cat .setup-stamp 2>/dev/null)" != "$stamp" ]; then
   echo "[setup] installing mmpa[dev,$FLAVOR] into $VENV"
   "$VENV/bin/python" -m pip install -q --upgrade pip
-  "$VENV/bin/python" -m pip install -q -e ".[dev,$FLAVOR]"
+  # constraints.txt pins the exact versions tested together (regenerate with
+  # `.venv/bin/pip freeze --exclude-editable | grep -v ^mmpa > constraints.txt`)
+  cons=(-c constraints.txt)
+  [ "$FLAVOR" = cpu ] || cons=()  # the CUDA flavor resolves its own Open3D dependencies
+  "$VENV/bin/python" -m pip install -q "${cons[@]}" -e ".[dev,$FLAVOR]"
   echo "$stamp" > .setup-stamp
 fi
