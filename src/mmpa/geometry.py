@@ -23,6 +23,7 @@ __all__ = [
     "T_to_vec6",
     "adjoint",
     "apply",
+    "as_transform",
     "exp_se3",
     "hat",
     "inv",
@@ -45,7 +46,8 @@ __all__ = [
 ]
 
 
-def _as_T(T: ArrayLike, name: str = "T") -> Array:
+def as_transform(T: ArrayLike, name: str = "T") -> Array:
+    """``T`` as a float 4x4 array; InvalidInputError naming ``name`` if malformed or NaN."""
     T = np.asarray(T, dtype=float)
     if T.shape != (4, 4):
         raise InvalidInputError(f"{name} must be a 4x4 homogeneous transform, got shape {T.shape}")
@@ -141,7 +143,7 @@ def vec6_to_T(v: ArrayLike) -> Array:
 
 def T_to_vec6(T: ArrayLike) -> Array:
     """4x4 transform to ``[tx, ty, tz, roll, pitch, yaw]`` (m, rad)."""
-    T = _as_T(T)
+    T = as_transform(T)
     return np.concatenate([T[:3, 3], R_to_rpy(T[:3, :3])])
 
 
@@ -199,7 +201,7 @@ def exp_se3(xi: ArrayLike) -> Array:
 
 def log_se3(T: ArrayLike) -> Array:
     """Logarithm of SE(3): the twist ``[v, w]`` (6,) with ``exp_se3(log_se3(T)) == T``."""
-    T = _as_T(T)
+    T = as_transform(T)
     w = Rotation.from_matrix(T[:3, :3]).as_rotvec()
     th = float(np.linalg.norm(w))
     W = hat(w)
@@ -260,7 +262,7 @@ def se2_to_T(x: float, y: float, theta: float) -> Array:
 
 def T_to_se2(T: ArrayLike) -> Array:
     """Project a 4x4 transform on the plane: ``[x, y, yaw]`` with yaw of the x axis."""
-    T = _as_T(T)
+    T = as_transform(T)
     return np.array([T[0, 3], T[1, 3], np.arctan2(T[1, 0], T[0, 0])])
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 # Offscreen rendering without a GPU: OSMesa unless the user chose (e.g. MUJOCO_GL=egl).
 os.environ.setdefault("MUJOCO_GL", "osmesa")
@@ -16,6 +16,9 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from mmpa.errors import MMPAError
+
+if TYPE_CHECKING:
+    from mmpa.experiments.demo import DemoConfig
 
 app = typer.Typer(
     help="mmpa: precise mobile manipulation with a MuJoCo digital twin.",
@@ -33,6 +36,14 @@ SetOpt = Annotated[list[str] | None, typer.Option("--set", help="Override: key=v
 def _fail(e: MMPAError) -> None:
     console.print(f"[bold red]error:[/] {e}")
     raise typer.Exit(2)
+
+
+def _demo_config(config: Path | None, seed: int, set_: list[str] | None) -> DemoConfig:
+    """DemoConfig from defaults, the YAML file, ``--seed`` and ``--set`` (in that order)."""
+    from mmpa.config import load_config
+    from mmpa.experiments.demo import DemoConfig
+
+    return load_config(DemoConfig, config, [f"errors.seed={seed}", *(set_ or [])])
 
 
 def _show(summary: dict, title: str) -> None:
@@ -58,11 +69,10 @@ def demo(
     set_: SetOpt = None,
 ) -> None:
     """Drive Site 0 -> Site 1 in the built-in world, capture RGB-D and a scan, write pictures."""
-    from mmpa.config import load_config
-    from mmpa.experiments.demo import DemoConfig, run_demo
+    from mmpa.experiments.demo import run_demo
 
     try:
-        cfg = load_config(DemoConfig, config, [f"errors.seed={seed}", *(set_ or [])])
+        cfg = _demo_config(config, seed, set_)
         with Progress(
             TextColumn("{task.description}"),
             BarColumn(),
@@ -93,11 +103,10 @@ def sim_snapshot(
     set_: SetOpt = None,
 ) -> None:
     """Place the robot at a site and write the camera, depth and top-down pictures."""
-    from mmpa.config import load_config
-    from mmpa.experiments.demo import DemoConfig, snapshot
+    from mmpa.experiments.demo import snapshot
 
     try:
-        cfg = load_config(DemoConfig, config, [f"errors.seed={seed}", *(set_ or [])])
+        cfg = _demo_config(config, seed, set_)
         summary = snapshot(cfg, site, out)
     except MMPAError as e:
         _fail(e)

@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 from mmpa.errors import InvalidInputError, UnreachableError
-from mmpa.geometry import Array, inv
+from mmpa.geometry import Array, as_transform, inv
 from mmpa.robot.description import DHParameters
 
 __all__ = [
@@ -59,15 +59,6 @@ def _as_q(q: ArrayLike, name: str = "q") -> Array:
     return q
 
 
-def _as_T(T: ArrayLike, name: str) -> Array:
-    T = np.asarray(T, dtype=float)
-    if T.shape != (4, 4):
-        raise InvalidInputError(f"{name} must be a 4x4 homogeneous transform, got {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise InvalidInputError(f"{name} contains NaN or inf")
-    return T
-
-
 def _as_limits(q_min: ArrayLike, q_max: ArrayLike) -> tuple[Array, Array]:
     lo = np.asarray(q_min, dtype=float).reshape(-1)
     hi = np.asarray(q_max, dtype=float).reshape(-1)
@@ -79,7 +70,7 @@ def _as_limits(q_min: ArrayLike, q_max: ArrayLike) -> tuple[Array, Array]:
 
 
 def _tool(T_flange_point: ArrayLike | None) -> Array | None:
-    return None if T_flange_point is None else _as_T(T_flange_point, "T_flange_point")
+    return None if T_flange_point is None else as_transform(T_flange_point, "T_flange_point")
 
 
 # --- forward kinematics ---------------------------------------------------------------------
@@ -362,7 +353,7 @@ def ik_refine(
 
     Raises :class:`UnreachableError` if it does not converge within ``max_iter`` iterations.
     """
-    T = _as_T(T_arm_base_flange, "T_arm_base_flange")
+    T = as_transform(T_arm_base_flange, "T_arm_base_flange")
     q0 = _as_q(q0, "q0")
     if q0.shape != (6,):
         raise InvalidInputError(f"q0 must have shape (6,), got {q0.shape}")
@@ -442,7 +433,7 @@ def ik(
     exceed 8. With ``T_flange_point``, the target is the pose of that point
     (``T_arm_base_point``) and the flange target is ``T @ inv(T_flange_point)``.
     """
-    T = _as_T(T_arm_base_flange, "T_arm_base_flange")
+    T = as_transform(T_arm_base_flange, "T_arm_base_flange")
     tool = _tool(T_flange_point)
     T_flange = T if tool is None else T @ inv(tool)
     if not np.isfinite(q6_singular):
@@ -513,7 +504,7 @@ def ik_nearest(
     the wrist centre's distance from the shoulder with the reach) or when all solutions
     violate the joint limits.
     """
-    T = _as_T(T_arm_base_flange, "T_arm_base_flange")
+    T = as_transform(T_arm_base_flange, "T_arm_base_flange")
     q_ref = _as_q(q_ref, "q_ref")
     if q_ref.shape != (6,):
         raise InvalidInputError(f"q_ref must have shape (6,), got {q_ref.shape}")

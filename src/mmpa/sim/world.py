@@ -18,7 +18,7 @@ import numpy as np
 from ruckig import InputParameter, Result, Ruckig, Trajectory
 
 from mmpa.errors import InvalidInputError, SimulationError, UnreachableError
-from mmpa.geometry import Array, T_to_se2, make_T, wrap_angle
+from mmpa.geometry import Array, T_to_se2, make_T
 from mmpa.robot.description import RobotDescription, default_robot
 from mmpa.robot.interfaces import Odometry
 from mmpa.sim.error_model import ErrorModel, ErrorModelConfig
@@ -451,8 +451,3 @@ class GroundTruth:
         return np.array(
             [self._w.data.geom(f"fiducial_{i}_reflector").xpos for i in range(len(fa.fiducials))]
         )
-
-
-def yaw_of(T: Array) -> float:
-    """Heading of a transform's x axis (rad)."""
-    return float(wrap_angle(np.arctan2(T[1, 0], T[0, 0])))
