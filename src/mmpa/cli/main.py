@@ -113,5 +113,55 @@ def sim_snapshot(
     _show(summary, f"snapshot of site {site} -> {out}")
 
 
+@app.command()
+def experiment(
+    name: Annotated[
+        str | None, typer.Argument(help="Experiment to run; leave out to list them.")
+    ] = None,
+    trials: Annotated[int | None, typer.Option(help="Trials (default: the paper's count).")] = None,
+    seed: Annotated[int, typer.Option(help="Seed of every random draw.")] = 0,
+    out: Annotated[Path | None, typer.Option(help="Run folder (default runs/NAME).")] = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Reproduce a paper table or figure: writes results.csv, report.md, plots, config.yaml."""
+    from mmpa.experiments.runner import EXPERIMENTS, run_experiment
+
+    if name is None:
+        t = Table(title="experiments", show_header=True)
+        t.add_column("name")
+        t.add_column("module")
+        for k, v in EXPERIMENTS.items():
+            t.add_row(k, v)
+        console.print(t)
+        return
+    out = out or Path("runs") / name
+    try:
+        with Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TimeElapsedColumn(),
+            console=console,
+            transient=True,
+        ) as bar:
+            task = bar.add_task(name, total=1.0)
+
+            def progress(stage: str, frac: float) -> None:
+                bar.update(task, description=stage, completed=max(0.0, min(frac, 1.0)))
+
+            outcome = run_experiment(
+                name,
+                out,
+                seed=seed,
+                trials=trials,
+                config=config,
+                overrides=set_ or [],
+                progress=progress,
+            )
+    except MMPAError as e:
+        _fail(e)
+    _show(outcome.summary, f"mmpa experiment {name} -> {out} (report.md, results.csv)")
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()

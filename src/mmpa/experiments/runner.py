@@ -1,0 +1,204 @@
+"""The experiment runner: one registry, one output layout for every paper table and figure.
+
+``mmpa experiment NAME --trials N --seed S --out DIR`` resolves ``NAME`` in :data:`EXPERIMENTS`
+(module paths, imported lazily so that a missing optional dependency of one experiment never
+breaks another), builds the experiment's config from defaults, an optional YAML file,
+``--seed``/``--trials`` and ``--set key=value`` overrides, and writes to ``DIR``:
+
+- ``config.yaml``: the final configuration;
+- ``results.csv``: one row per trial (the union of the rows' keys as columns);
+- ``summary.json``: the headline figures (also printed by the CLI);
+- ``report.md``: our figures next to the paper's;
+- any PNG plots the experiment writes into ``ctx.out``.
+
+An experiment module provides
+
+- ``Config``: a pydantic model with at least ``seed: int`` and ``trials: int | None``
+  (``None`` means the paper's count);
+- ``PAPER``: a one-line citation of the reproduced table/figure;
+- ``run(cfg: Config, ctx: Context) -> Outcome``.
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib
+import json
+import math
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel
+
+from mmpa.config import load_config, save_config
+from mmpa.errors import ConfigError, UnknownNameError
+
+__all__ = [
+    "EXPERIMENTS",
+    "Context",
+    "Outcome",
+    "experiment_module",
+    "markdown_table",
+    "run_experiment",
+    "stats",
+]
+
+Progress = Callable[[str, float], None]
+
+#: name -> module path; modules are imported on use.
+EXPERIMENTS: dict[str, str] = {
+    # paper 000 (MMPA / IPE)
+    "parking": "mmpa.experiments.mmpa_parking",
+    "ipe": "mmpa.experiments.mmpa_ipe",
+    "path-accuracy": "mmpa.experiments.mmpa_path",
+    "ablation-alpha": "mmpa.experiments.mmpa_ablation",
+    "ablation-beta": "mmpa.experiments.mmpa_ablation",
+    "scenes": "mmpa.experiments.mmpa_scenes",
+    # paper 001 (localization, detection, servoing)
+    "localization": "mmpa.experiments.localization",
+    "reflector-dropout": "mmpa.experiments.reflector_dropout",
+    "grasp": "mmpa.experiments.grasp",
+    "tracking": "mmpa.experiments.tracking",
+    "mobile-manipulation": "mmpa.experiments.mobile_manipulation",
+    # paper 002 (fiducial search)
+    "planning-convergence": "mmpa.experiments.planning_convergence",
+    "fiducial-search": "mmpa.experiments.fiducial_search",
+}
+
+
+@dataclass
+class Context:
+    """What the runner hands an experiment: where to write and how to report progress."""
+
+    name: str
+    out: Path
+    progress: Progress = field(default=lambda stage, frac: None)
+
+
+@dataclass
+class Outcome:
+    """What an experiment returns.
+
+    ``rows``: one dict per trial (scalars; becomes ``results.csv``). ``summary``: headline
+    figures (JSON-serializable). ``report``: the Markdown body of ``report.md`` (our figures
+    next to the paper's). ``figures``: file names of plots written into ``ctx.out``.
+    """
+
+    rows: list[dict[str, Any]]
+    summary: dict[str, Any]
+    report: str
+    figures: list[str] = field(default_factory=list)
+
+
+def experiment_module(name: str) -> Any:
+    """Import the module of experiment ``name``; clear errors for unknown/unavailable ones."""
+    if name not in EXPERIMENTS:
+        raise UnknownNameError("experiment", name, sorted(EXPERIMENTS))
+    path = EXPERIMENTS[name]
+    try:
+        return importlib.import_module(path)
+    except ModuleNotFoundError as e:
+        if e.name == path:
+            raise ConfigError(
+                f"experiment {name!r} is registered but not implemented yet ({path})"
+            ) from None
+        raise ConfigError(
+            f"experiment {name!r} needs the Python package {e.name!r}, which is not installed"
+        ) from None
+
+
+def run_experiment(
+    name: str,
+    out: str | Path,
+    *,
+    seed: int | None = None,
+    trials: int | None = None,
+    config: str | Path | None = None,
+    overrides: Sequence[str] = (),
+    progress: Progress | None = None,
+) -> Outcome:
+    """Run experiment ``name`` and write its run folder (see the module docstring)."""
+    mod = experiment_module(name)
+    sets = []
+    if seed is not None:
+        sets.append(f"seed={seed}")
+    if trials is not None:
+        if trials < 1:
+            raise ConfigError(f"--trials must be at least 1, got {trials}")
+        sets.append(f"trials={trials}")
+    fields = mod.Config.model_fields
+    if "experiment" in fields:  # one module serving several names (e.g. ablation-alpha/-beta)
+        sets.append(f"experiment={name}")
+    cfg: BaseModel = load_config(mod.Config, config, [*sets, *overrides])
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out / "config.yaml")
+    ctx = Context(name=name, out=out, progress=progress or (lambda stage, frac: None))
+    t0 = time.perf_counter()
+    outcome: Outcome = mod.run(cfg, ctx)
+    wall = time.perf_counter() - t0
+    outcome.summary.setdefault("wall_seconds", round(wall, 2))
+    write_csv(out / "results.csv", outcome.rows)
+    (out / "summary.json").write_text(json.dumps(_jsonable(outcome.summary), indent=2) + "\n")
+    head = f"# mmpa experiment {name}\n\nReproduces {mod.PAPER}.\n\n"
+    (out / "report.md").write_text(head + outcome.report.rstrip() + "\n")
+    return outcome
+
+
+def write_csv(path: Path, rows: Iterable[dict[str, Any]]) -> None:
+    """Rows (dicts) to CSV; columns are the union of keys in first-seen order."""
+    rows = list(rows)
+    cols: list[str] = []
+    for r in rows:
+        cols += [k for k in r if k not in cols]
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=cols)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: _jsonable(v) for k, v in r.items()})
+
+
+def stats(values: Iterable[float]) -> dict[str, float]:
+    """Mean, SD (ddof=1), median, max and count of the finite values."""
+    a = np.asarray([v for v in values if v is not None], dtype=float)
+    a = a[np.isfinite(a)]
+    if len(a) == 0:
+        return {"mean": math.nan, "sd": math.nan, "median": math.nan, "max": math.nan, "n": 0}
+    return {
+        "mean": float(a.mean()),
+        "sd": float(a.std(ddof=1)) if len(a) > 1 else 0.0,
+        "median": float(np.median(a)),
+        "max": float(a.max()),
+        "n": len(a),
+    }
+
+
+def markdown_table(header: Sequence[str], rows: Iterable[Sequence[Any]], digits: int = 3) -> str:
+    """A GitHub Markdown table; floats rounded to ``digits`` significant decimals."""
+
+    def fmt(v: Any) -> str:
+        if isinstance(v, float | np.floating):
+            return "–" if not math.isfinite(v) else f"{v:.{digits}f}"
+        return str(v)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(fmt(v) for v in r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _jsonable(v.tolist())
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return None if math.isnan(v) else v
+    return v
