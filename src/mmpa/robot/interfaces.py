@@ -27,6 +27,7 @@ __all__ = [
     "PointCloud",
     "RGBDFrame",
     "deproject",
+    "mean_frame",
 ]
 
 
@@ -80,6 +81,33 @@ class RGBDFrame:
     ) -> PointCloud:
         """Deproject valid pixels to a colored cloud in the camera optical frame."""
         return deproject(self.depth, self.color, self.intrinsics, min_depth, max_depth, stride)
+
+
+def mean_frame(frames: list[RGBDFrame]) -> RGBDFrame:
+    """Average several captures from one viewpoint into one frame.
+
+    Depth: per-pixel mean over the captures where it is valid, kept where at least half of
+    them are valid (averages sensor noise and per-capture depth-scale error by ``1/sqrt(n)``);
+    color: per-pixel mean. The stamp is the last capture's.
+    """
+    if not frames:
+        raise InvalidInputError("mean_frame needs at least one RGB-D frame")
+    if len(frames) == 1:
+        return frames[0]
+    D = np.stack([f.depth for f in frames]).astype(np.float64)
+    valid = np.isfinite(D) & (D > 0)
+    n = valid.sum(axis=0)
+    depth = np.where(valid, D, 0.0).sum(axis=0) / np.maximum(n, 1)
+    depth[n * 2 < len(frames)] = 0.0
+    color = np.mean([f.color.astype(np.float64) for f in frames], axis=0)
+    f0 = frames[-1]
+    return RGBDFrame(
+        np.clip(np.rint(color), 0, 255).astype(np.uint8),
+        depth.astype(np.float32),
+        f0.intrinsics,
+        f0.stamp,
+        f0.frame_id,
+    )
 
 
 def deproject(
@@ -194,8 +222,14 @@ class Arm(Protocol):
         """Move to ``q`` (rad, shape (6,)) and wait until there (within ``duration`` s)."""
         ...
 
-    def follow(self, times: Array, q_path: Array) -> None:
-        """Track a time-parameterized joint path ``q_path`` (T, 6) at ``times`` (T,) s."""
+    def follow(
+        self, times: Array, q_path: Array, record_hz: float | None = None
+    ) -> tuple[Array, Array] | None:
+        """Track a time-parameterized joint path ``q_path`` (T, 6) at ``times`` (T,) s.
+
+        With ``record_hz``, also read the encoders at that rate while moving and return
+        ``(t (M,), q (M, 6))``.
+        """
         ...
 
 

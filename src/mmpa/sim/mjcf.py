@@ -299,6 +299,16 @@ class _Builder:
             lx, ly, lz = item.size or (1.1, 0.03, 0.45)
             mat = self.texture(f"{name}_poster", textures.backboard(self.rng))
             geom("board", (0, 0, lz / 2), type="box", size=_f(lx / 2, ly / 2, lz / 2), material=mat)
+        elif k == "dot":
+            # paper 000 Fig. 6c/10: the red dot the needle points at (printed on thin paper)
+            r = (item.size or (0.004,))[0]
+            geom(
+                "disc",
+                (0, 0, 0.0005),
+                type="cylinder",
+                size=_f(r, 0.0005),
+                rgba=self.color(item.color or (0.85, 0.05, 0.05)),
+            )
         elif k in ("logo_tape", "letter_tape"):
             lx, ly = (item.size or (0.2, 0.06))[:2]
             if k == "logo_tape":

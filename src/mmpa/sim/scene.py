@@ -128,6 +128,7 @@ ItemKind = Literal[
     "waste_container",
     "test_tube_stand",
     "box",
+    "dot",
 ]
 
 

@@ -360,8 +360,14 @@ class SimArm:
         w._motion = _ArmMotion(float(w.data.time), T, sample_noisy)
         w.step(T + settle)
 
-    def follow(self, times: Array, q_path: Array) -> None:
-        """Track ``q_path`` (T, 6) at ``times`` (T,) s (linear interpolation between samples)."""
+    def follow(
+        self, times: Array, q_path: Array, record_hz: float | None = None
+    ) -> tuple[Array, Array] | None:
+        """Track ``q_path`` (T, 6) at ``times`` (T,) s (linear interpolation between samples).
+
+        With ``record_hz`` the encoders are read every ``1 / record_hz`` s while the arm moves
+        (as a teach-in recorder does) and ``(t, q)`` is returned: ``t`` (M,) from 0, ``q`` (M, 6).
+        """
         times = np.asarray(times, float)
         q_path = np.asarray(q_path, float)
         if q_path.ndim != 2 or q_path.shape[1] != 6 or times.shape != (q_path.shape[0],):
@@ -379,7 +385,20 @@ class SimArm:
             return np.array([np.interp(t, t_rel, q_path[:, j]) for j in range(6)])
 
         w._motion = _ArmMotion(float(w.data.time), float(t_rel[-1]), sample)
-        w.step(float(t_rel[-1]) + 0.2)
+        if record_hz is None:
+            w.step(float(t_rel[-1]) + 0.2)
+            return None
+        if not (np.isfinite(record_hz) and record_hz > 0):
+            raise InvalidInputError(f"record_hz must be a positive rate, got {record_hz}")
+        dt = 1.0 / record_hz
+        n = int(np.floor(t_rel[-1] * record_hz + 1e-9)) + 1
+        t_rec, q_rec = [0.0], [self.joint_positions()]
+        for i in range(1, n):
+            w.step(dt)
+            t_rec.append(i * dt)
+            q_rec.append(self.joint_positions())
+        w.step(max(t_rel[-1] - (n - 1) * dt, 0.0) + 0.2)
+        return np.array(t_rec), np.array(q_rec)
 
 
 class SimGripper:
