@@ -1,0 +1,230 @@
+"""The IPE loop of paper 000 Fig. 4, over the hardware-neutral Arm and Camera interfaces.
+
+1. Set the sampling pose to the taught one (the taught joints ``q_sample``).
+2. Loop ``k = 1 .. beta``: if the sampling pose is unreachable, stop with False (the arm does
+   not move); move there, capture ``X_i(k)``, register the taught cloud ``X_i(O)`` to it
+   (``dT_C``, eq. 3), update ``dT_B`` (eq. 9-10); if ``dT_C`` is below ``alpha`` stop with True;
+   otherwise set the next sampling pose so that the camera returns to its taught pose in the
+   world (``T_Bk_C* = dT_B T_Bo_Co``) and go on. After ``beta`` registrations, stop with False.
+
+A failed registration (``ok=False``) or an implausible estimate stops IPE with False and a
+reason; the arm never moves on a failed estimate.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from mmpa.errors import InvalidInputError, UnreachableError
+from mmpa.geometry import Array, as_transform, inv
+from mmpa.ipe.core import (
+    DEFAULT_ALPHA,
+    alpha_vector,
+    camera_target,
+    converged,
+    delta_T_B,
+    pose_difference,
+)
+from mmpa.registration import Prepared, Registration, RegistrationConfig, prepare, register
+from mmpa.robot.description import RobotDescription
+from mmpa.robot.interfaces import Arm, Camera, PointCloud, mean_frame
+from mmpa.robot.kinematics import fk, ik_nearest
+
+__all__ = ["IPE", "IPEConfig", "IPEIteration", "IPEResult", "capture_cloud"]
+
+
+class IPEConfig(BaseModel):
+    """IPE parameters (paper 000 §4.3 defaults for alpha and beta)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    alpha: tuple[float, float, float, float, float, float] = DEFAULT_ALPHA  # m x3, rad x3
+    beta: int = Field(5, ge=1)  # the paper uses 10 at Site 2'
+    frames: int = Field(4, ge=1)  # captures averaged per view (paper: 1)
+    global_each_iteration: bool = False  # paper: True (FGR + colored ICP every time)
+    min_depth: float = Field(0.2, gt=0)  # m, crop of the captured cloud
+    max_depth: float = Field(1.5, gt=0)
+    max_translation: float = Field(1.0, gt=0)  # m: larger |dT_B| is implausible -> False
+    max_rotation: float = Field(np.deg2rad(60.0), gt=0)  # rad
+    registration: RegistrationConfig = RegistrationConfig()
+
+    @field_validator("alpha")
+    @classmethod
+    def _alpha(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        alpha_vector(v)
+        return v
+
+
+@dataclass(frozen=True)
+class IPEIteration:
+    """One pass of the loop: the joints the camera sampled at, the nominal ``T_Bk_Ck``, the
+    registration (``dT_C`` = ``registration.T``), the updated ``dT_B`` and timings (s)."""
+
+    k: int
+    q: Array
+    T_Bk_Ck: Array
+    registration: Registration
+    dT_B: Array | None
+    difference: Array  # |[tx, ty, tz, r, p, y]| of dT_C (m, rad)
+    seconds_move: float
+    seconds_capture: float
+    seconds_register: float
+
+
+@dataclass
+class IPEResult:
+    """Outcome of IPE: ``ok`` (the execution flag of Fig. 4), ``dT_B`` (4x4; None on failure),
+    a ``reason`` when not ok, and every iteration."""
+
+    ok: bool
+    dT_B: Array | None
+    reason: str = ""
+    iterations: list[IPEIteration] = field(default_factory=list)
+    seconds_prepare: float = 0.0
+
+    @property
+    def n_iterations(self) -> int:
+        return len(self.iterations)
+
+    @property
+    def seconds_compute(self) -> float:
+        """Registration and preparation time (excludes arm motion and capture)."""
+        return self.seconds_prepare + sum(it.seconds_register for it in self.iterations)
+
+    @property
+    def estimates(self) -> list[Array]:
+        """``dT_B`` after every iteration (Fig. 9)."""
+        return [it.dT_B for it in self.iterations if it.dT_B is not None]
+
+
+def capture_cloud(camera: Camera, frames: int, min_depth: float, max_depth: float) -> PointCloud:
+    """Capture ``frames`` RGB-D frames, average them, deproject to a colored cloud."""
+    frame = mean_frame([camera.capture() for _ in range(frames)])
+    return frame.to_point_cloud(min_depth=min_depth, max_depth=max_depth)
+
+
+Progress = Callable[[str, float], None]
+
+
+class IPE:
+    """Iterative pose estimation by eye & hand (Fig. 4) for one robot (NOMINAL model)."""
+
+    def __init__(self, robot: RobotDescription, cfg: IPEConfig | None = None) -> None:
+        self.robot = robot
+        self.cfg = cfg or IPEConfig()
+        self._T_flange_camera = robot.camera.T_flange_camera
+
+    def T_arm_base_camera(self, q: Array) -> Array:
+        """Nominal camera pose in the arm base at joints ``q`` (forward kinematics + hand-eye)."""
+        return fk(self.robot.arm.dh, q) @ self._T_flange_camera
+
+    def camera_joints(self, T_B_camera: Array, q_ref: Array) -> Array:
+        """Joints that put the camera at ``T_B_camera`` (nearest ``q_ref``); UnreachableError."""
+        lo, hi = self.robot.arm.q_limits
+        T_B_flange = T_B_camera @ inv(self._T_flange_camera)
+        return ik_nearest(self.robot.arm.dh, T_B_flange, q_ref, lo, hi)
+
+    def run(
+        self,
+        arm: Arm,
+        camera: Camera,
+        q_sample: Array,
+        T_Bo_Co: Array,
+        taught: PointCloud | Prepared,
+        progress: Progress | None = None,
+        dT_B_prior: Array | None = None,
+    ) -> IPEResult:
+        """Run Fig. 4. ``taught`` is ``X_i(O)`` (camera frame at teaching), ``T_Bo_Co`` the
+        nominal camera pose in the arm base at teaching, ``q_sample`` the taught joints.
+
+        ``dT_B_prior`` (beyond the paper): a rough ``dT_B`` from the base localization (the
+        planar park pose now vs at teaching). The first view is then taken where the camera
+        should see the taught scene, and the first registration starts from the prior
+        (falling back to global registration when that fails)."""
+        cfg = self.cfg
+        T_Bo_Co = as_transform(T_Bo_Co, "T_Bo_Co")
+        q_next = np.asarray(q_sample, dtype=float)
+        if q_next.shape != (6,) or not np.all(np.isfinite(q_next)):
+            raise InvalidInputError(f"q_sample must be 6 finite joint angles, got {q_next}")
+        t0 = time.perf_counter()
+        source = taught if isinstance(taught, Prepared) else prepare(taught, cfg.registration)
+        result = IPEResult(ok=False, dT_B=None, seconds_prepare=time.perf_counter() - t0)
+        lo, hi = self.robot.arm.q_limits
+        prior = None if dT_B_prior is None else as_transform(dT_B_prior, "dT_B_prior")
+        if prior is not None:
+            try:
+                q_next = self.camera_joints(camera_target(prior, T_Bo_Co), q_next)
+            except UnreachableError:
+                prior = None  # the taught joints, as in the paper
+        for k in range(1, cfg.beta + 1):
+            if progress:
+                progress(f"IPE iteration {k}", (k - 1) / cfg.beta)
+            if np.any(q_next < lo) or np.any(q_next > hi):
+                result.reason = f"iteration {k}: the sampling pose is outside the joint limits"
+                return result
+            t1 = time.perf_counter()
+            arm.move_joints(q_next)
+            q = arm.joint_positions()
+            t2 = time.perf_counter()
+            cloud = capture_cloud(camera, cfg.frames, cfg.min_depth, cfg.max_depth)
+            t3 = time.perf_counter()
+            T_Bk_Ck = self.T_arm_base_camera(q)
+            # after the first view the camera is back near its taught pose: the previous
+            # estimate predicts dT_C (~ identity) and the fine stage starts there
+            init = None
+            guess = result.dT_B if result.dT_B is not None else prior
+            if guess is not None and not cfg.global_each_iteration:
+                init = inv(T_Bk_Ck) @ guess @ T_Bo_Co
+            reg = register(source, cloud, cfg.registration, init=init)
+            if not reg.ok and init is not None and result.dT_B is None:
+                reg = register(source, cloud, cfg.registration)  # the prior was off: go global
+            t4 = time.perf_counter()
+            dT_B = delta_T_B(T_Bk_Ck, reg.T, T_Bo_Co) if reg.ok else None
+            it = IPEIteration(
+                k, q, T_Bk_Ck, reg, dT_B, pose_difference(reg.T), t2 - t1, t3 - t2, t4 - t3
+            )
+            result.iterations.append(it)
+            if not reg.ok or dT_B is None:
+                result.reason = f"iteration {k}: registration failed: {reg.reason}"
+                return result
+            if np.linalg.norm(dT_B[:3, 3]) > cfg.max_translation or _angle(dT_B) > cfg.max_rotation:
+                result.reason = (
+                    f"iteration {k}: implausible parking offset "
+                    f"({np.linalg.norm(dT_B[:3, 3]):.3f} m, {np.rad2deg(_angle(dT_B)):.1f} deg)"
+                )
+                return result
+            result.dT_B = dT_B
+            if converged(reg.T, cfg.alpha):
+                result.ok = True
+                return result
+            if k == cfg.beta:
+                break
+            target = camera_target(dT_B, T_Bo_Co)
+            try:
+                q_next = self.camera_joints(target, q)
+            except UnreachableError as e:
+                result.reason = f"iteration {k}: the next sampling pose is unreachable: {e}"
+                result.dT_B = None
+                return result
+        result.reason = (
+            f"not converged after beta={cfg.beta} iterations (last pose difference "
+            f"{_fmt(result.iterations[-1].difference)})"
+        )
+        result.dT_B = None
+        return result
+
+
+def _angle(T: Array) -> float:
+    return float(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1.0, 1.0)))
+
+
+def _fmt(d: Array) -> str:
+    return (
+        f"{d[0] * 1e3:.2f}/{d[1] * 1e3:.2f}/{d[2] * 1e3:.2f} mm, "
+        f"{np.rad2deg(d[3]):.3f}/{np.rad2deg(d[4]):.3f}/{np.rad2deg(d[5]):.3f} deg"
+    )

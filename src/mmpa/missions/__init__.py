@@ -1,0 +1,1 @@
+"""Missions compose capabilities over the robot interfaces (never the simulator)."""

@@ -1,0 +1,226 @@
+"""MMPA (paper 000 §3): one-shot teaching and the automation stage, over robot interfaces.
+
+Teaching (§3.1) records a :class:`~mmpa.tasks.Task`: the park pose estimate ``L_i(vehicle)``,
+the wrist camera's colored cloud ``X_i(O)`` at the sampling joints, the nominal ``T_B_C`` there,
+and the tool path ``Path_i(O)`` from the encoders at ``f_i`` Hz through the NOMINAL kinematics.
+
+Automation (§3.2, after the base has parked): IPE estimates ``dT_B``; the taught tool poses map
+by eq. 11 (``T_Bk_tool = dT_B T_Bo_tool``); IK and time parameterization turn them into a
+joint trajectory; the arm runs it. Nothing moves unless IPE returned True and every waypoint
+is reachable without a joint jump. TMMA (Nair et al. 2019) replays the taught joints as they are.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from mmpa.errors import InvalidInputError, MMPAError, UnreachableError
+from mmpa.geometry import Array, inv
+from mmpa.ipe import transform_path
+from mmpa.ipe.loop import IPE, IPEConfig, IPEResult, capture_cloud
+from mmpa.planning import JointPath, PathPlanConfig, plan_joint_path, retime
+from mmpa.robot.description import RobotDescription
+from mmpa.robot.interfaces import Arm, Camera, Gripper
+from mmpa.robot.kinematics import fk
+from mmpa.tasks import Task, ToolPath
+
+__all__ = [
+    "AutomationConfig",
+    "AutomationResult",
+    "TeachConfig",
+    "automate",
+    "execute_joint_path",
+    "replay_tmma",
+    "teach",
+]
+
+Progress = Callable[[str, float], None]
+#: a demonstration recorder: runs the demonstration, returns (t (M,), q (M, 6), gripper (M,), f)
+Recorder = Callable[[], tuple[Array, Array, Array, float]]
+
+
+class TeachConfig(BaseModel):
+    """One-shot teaching: how the scene cloud is sampled."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    frames: int = Field(4, ge=1)  # captures averaged into X_i(O)
+    min_depth: float = Field(0.2, gt=0)
+    max_depth: float = Field(1.5, gt=0)
+
+
+def teach(
+    name: str,
+    site: str,
+    *,
+    arm: Arm,
+    camera: Camera,
+    robot: RobotDescription,
+    T_map_base_park: Array,
+    q_sample: Array,
+    record: Recorder,
+    cfg: TeachConfig | None = None,
+    description: str = "",
+    robot_id: str = "twin",
+    meta: dict | None = None,
+) -> Task:
+    """Record a task (paper 000 §3.1): sample the scene at ``q_sample``, then record the
+    demonstration. ``T_map_base_park`` is the localization estimate of the park pose."""
+    cfg = cfg or TeachConfig()
+    arm.move_joints(np.asarray(q_sample, dtype=float))
+    q_meas = arm.joint_positions()
+    cloud = capture_cloud(camera, cfg.frames, cfg.min_depth, cfg.max_depth)
+    if len(cloud) < 1000:
+        raise InvalidInputError(
+            f"the camera sees only {len(cloud)} points at the sampling pose: point it at the "
+            "work area (within {cfg.min_depth}-{cfg.max_depth} m)"
+        )
+    T_B_C = fk(robot.arm.dh, q_meas) @ robot.camera.T_flange_camera
+    t, q, g, rate = record()
+    T_B_tool = fk(robot.arm.dh, q, robot.gripper.T_flange_tcp)
+    path = ToolPath(t=t, q=q, T_arm_base_tool=T_B_tool, rate_hz=rate, gripper=g)
+    return Task(
+        name=name,
+        site=site,
+        T_map_base_park=np.asarray(T_map_base_park, dtype=float),
+        q_sample=q_meas,
+        T_arm_base_camera=T_B_C,
+        cloud=cloud,
+        path=path,
+        robot_id=robot_id,
+        description=description,
+        meta=meta or {},
+    )
+
+
+class AutomationConfig(BaseModel):
+    """The automation stage after parking: IPE, then path adaptation and execution."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    ipe: IPEConfig = IPEConfig()
+    plan: PathPlanConfig = PathPlanConfig()
+    execute: bool = True
+    localization_prior: bool = True  # first IPE view from the base localization (paper: no)
+
+
+@dataclass
+class AutomationResult:
+    """``ok`` when IPE converged and the path was planned (and executed when asked);
+    ``reason`` says why not. ``record``: encoder samples while executing (when recorded)."""
+
+    ok: bool
+    reason: str
+    ipe: IPEResult | None
+    T_arm_base_tool: Array | None = None  # adapted path (N, 4, 4)
+    joint_path: JointPath | None = None
+    executed: bool = False
+    record: tuple[Array, Array] | None = None
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def automate(
+    task: Task,
+    *,
+    arm: Arm,
+    camera: Camera,
+    gripper: Gripper | None,
+    robot: RobotDescription,
+    cfg: AutomationConfig | None = None,
+    record_hz: float | None = None,
+    progress: Progress | None = None,
+    T_map_base_now: Array | None = None,
+) -> AutomationResult:
+    """IPE (Fig. 4), eq. 11, IK + time parameterization, execution (§3.2.2-3.2.4).
+
+    ``T_map_base_now``: the localization estimate of the current park pose. With
+    ``cfg.localization_prior`` it gives IPE its first guess,
+    ``dT_B ~ inv(T_map_base_now T_base_arm) (T_map_base_park T_base_arm)``."""
+    cfg = cfg or AutomationConfig()
+    t0 = time.perf_counter()
+    prior = None
+    if T_map_base_now is not None and cfg.localization_prior:
+        T_ba = robot.T_base_link_arm_base
+        prior = inv(np.asarray(T_map_base_now, float) @ T_ba) @ (task.T_map_base_park @ T_ba)
+    ipe = IPE(robot, cfg.ipe).run(
+        arm, camera, task.q_sample, task.T_arm_base_camera, task.cloud, progress, prior
+    )
+    out = AutomationResult(False, "", ipe, seconds={"ipe": time.perf_counter() - t0})
+    if not ipe.ok or ipe.dT_B is None:
+        out.reason = f"IPE failed: {ipe.reason}"
+        return out
+    T_new = transform_path(ipe.dT_B, task.path.T_arm_base_tool)
+    out.T_arm_base_tool = T_new
+    try:
+        q_path = plan_joint_path(
+            robot.arm, T_new, arm.joint_positions(), robot.gripper.T_flange_tcp, cfg.plan
+        )
+        out.joint_path = retime(task.path.t, q_path, robot.arm, cfg.plan)
+    except (UnreachableError, InvalidInputError) as e:
+        out.reason = f"path planning failed: {e}"
+        return out
+    out.ok = True
+    if cfg.execute:
+        out.record = execute_joint_path(
+            arm, gripper, out.joint_path, task.path.gripper, record_hz=record_hz
+        )
+        out.executed = True
+    out.seconds["total"] = time.perf_counter() - t0
+    return out
+
+
+def execute_joint_path(
+    arm: Arm,
+    gripper: Gripper | None,
+    path: JointPath,
+    gripper_states: Array | None,
+    record_hz: float | None = None,
+) -> tuple[Array, Array] | None:
+    """Move to the path start (jerk-limited), then follow it; the gripper closes or opens
+    between segments where the taught gripper state changes. Returns the recording (time from
+    the path start, joints) when ``record_hz`` is given."""
+    q, t = path.q, path.t
+    g = None if gripper_states is None else np.asarray(gripper_states, dtype=float)
+    if g is not None and (g.shape != (len(q),)):
+        raise InvalidInputError(f"gripper states must have shape ({len(q)},), got {g.shape}")
+    if g is not None and gripper is None and np.any(g > 0.5):
+        raise MMPAError("the taught path uses the gripper but this robot has none")
+    arm.move_joints(q[0])
+    if gripper is not None and g is not None:
+        (gripper.close if g[0] > 0.5 else gripper.open)()
+    cuts = [0] if g is None else [0, *(np.flatnonzero(np.diff(g > 0.5)) + 1).tolist()]
+    cuts.append(len(q))
+    rec_t, rec_q = [], []
+    for a, b in itertools.pairwise(cuts):
+        lo = max(a - 1, 0)
+        if b - lo >= 2:
+            r = arm.follow(t[lo:b], q[lo:b], record_hz=record_hz)
+            if r is not None:
+                rec_t.append(r[0] + t[lo])
+                rec_q.append(r[1])
+        if gripper is not None and g is not None and b < len(q):
+            (gripper.close if g[b] > 0.5 else gripper.open)()
+    if record_hz is None or not rec_t:
+        return None
+    return np.concatenate(rec_t), np.concatenate(rec_q)
+
+
+def replay_tmma(
+    task: Task, *, arm: Arm, gripper: Gripper | None, record_hz: float | None = None
+) -> tuple[Array, Array] | None:
+    """TMMA baseline: replay the taught joint sequence without correction (the sampling pose,
+    then the recorded joint path), as Nair et al. 2019 replay a recorded arm motion."""
+    arm.move_joints(task.q_sample)
+    return execute_joint_path(
+        arm,
+        gripper,
+        JointPath(task.path.t - task.path.t[0], task.path.q),
+        task.path.gripper,
+        record_hz=record_hz,
+    )
