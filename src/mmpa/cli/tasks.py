@@ -48,20 +48,19 @@ def list_tasks(db: DbOpt = None) -> None:
     except MMPAError as e:
         fail(e)
     t = Table(title=f"tasks in {where}")
-    for col in ("name", "site", "robot", "created (UTC)", "points", "color", "waypoints"):
-        t.add_column(col)
-    t.add_column("duration s", justify="right")
-    t.add_column("description")
+    t.add_column("name", no_wrap=True)
+    t.add_column("site", no_wrap=True)
+    t.add_column("created (UTC)", no_wrap=True)
+    t.add_column("cloud", no_wrap=True)
+    t.add_column("path", no_wrap=True)
+    t.add_column("description", overflow="fold")
     for i in infos:
         t.add_row(
             i.name,
             i.site,
-            i.robot_id,
-            i.created.strftime("%Y-%m-%d %H:%M:%S"),
-            str(i.n_points),
-            "yes" if i.has_colors else "no",
-            f"{i.n_waypoints} @ {i.rate_hz:g} Hz",
-            f"{i.duration:.2f}",
+            i.created.strftime("%Y-%m-%d %H:%M"),
+            f"{i.n_points} {'rgb' if i.has_colors else 'xyz'}",
+            f"{i.n_waypoints} @ {i.rate_hz:g} Hz, {i.duration:.2f} s",
             i.description,
         )
     console.print(t)
