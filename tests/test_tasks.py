@@ -527,3 +527,33 @@ def test_default_store_path(tmp_path: Path, monkeypatch) -> None:
         s.save(make_task())
     assert (tmp_path / "deep/dir/my.db").is_file()
     assert os.environ["MMPA_TASKS_DB"].endswith("my.db")
+
+
+def test_older_schema_is_migrated_in_order(tmp_path: Path, monkeypatch) -> None:
+    """A later mmpa adds migration 2: opening a version-1 store applies it once, keeps data."""
+    import mmpa.tasks.store as st
+
+    db = tmp_path / "tasks.db"
+    with TaskStore(db) as s:
+        s.save(make_task())
+    monkeypatch.setattr(st, "SCHEMA_VERSION", 2)
+    monkeypatch.setitem(
+        st.MIGRATIONS, 2, ("ALTER TABLE tasks ADD COLUMN operator TEXT NOT NULL DEFAULT ''",)
+    )
+    with TaskStore(db) as s:
+        assert s.schema_version() == 2
+        cols = [r[1] for r in s.con.execute("PRAGMA table_info(tasks)")]
+        assert "operator" in cols
+        assert_same_task(make_task(), s.load("valve"))
+    with TaskStore(db) as s:
+        assert [r[0] for r in s.con.execute("SELECT version FROM schema_version")] == [1, 2]
+
+
+def test_dataclasses_replace_revalidates() -> None:
+    import dataclasses
+
+    task = make_task()
+    other = dataclasses.replace(task, name="valve_copy")
+    assert other.name == "valve_copy" and np.array_equal(other.path.q, task.path.q)
+    with pytest.raises(InvalidInputError, match=r"name"):
+        dataclasses.replace(task, name="no/slash")

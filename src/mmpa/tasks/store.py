@@ -275,7 +275,13 @@ class TaskStore:
     def load(self, name: str) -> Task:
         """The task ``name``, every checksum verified (TaskNotFoundError, CorruptTaskError)."""
         con = self.con
-        row = con.execute("SELECT * FROM tasks WHERE name = ?", (name,)).fetchone()
+        con.execute("BEGIN")  # one consistent snapshot of the three rows
+        try:
+            row = con.execute("SELECT * FROM tasks WHERE name = ?", (name,)).fetchone()
+            cloud_row = con.execute("SELECT ply FROM clouds WHERE task = ?", (name,)).fetchone()
+            path_row = con.execute("SELECT * FROM paths WHERE task = ?", (name,)).fetchone()
+        finally:
+            con.execute("COMMIT")
         if row is None:
             raise self._not_found(name)
         where = f"task {name!r} in {self.path}"
@@ -284,8 +290,6 @@ class TaskStore:
                 f"{where} has format version {row['format_version']}, newer than this mmpa "
                 f"reads ({FORMAT_VERSION}); upgrade mmpa"
             )
-        cloud_row = con.execute("SELECT ply FROM clouds WHERE task = ?", (name,)).fetchone()
-        path_row = con.execute("SELECT * FROM paths WHERE task = ?", (name,)).fetchone()
         if cloud_row is None or path_row is None:
             missing = "clouds" if cloud_row is None else "paths"
             raise CorruptTaskError(f"{where}: its row in table {missing!r} is missing")
