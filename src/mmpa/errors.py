@@ -33,3 +33,26 @@ class UnreachableError(MMPAError):
 
 class SimulationError(MMPAError):
     """The simulator failed (unstable physics, rendering unavailable)."""
+
+
+class TaskNotFoundError(UnknownNameError):
+    """A task is not in the store; the message names the store and the stored tasks."""
+
+    def __init__(self, name: str, valid: list[str] | tuple[str, ...], where: str = "") -> None:
+        self.kind, self.name, self.valid = "task", name, list(valid)
+        shown = ", ".join(map(str, self.valid[:20])) + (" ..." if len(self.valid) > 20 else "")
+        msg = f"no task {name!r}" + (f" in {where}" if where else "")
+        msg += f"; stored: {shown}" if self.valid else "; the store is empty"
+        KeyError.__init__(self, msg)
+
+
+class CorruptTaskError(MMPAError):
+    """A stored task or bundle fails its checks (checksum, size, missing field or file)."""
+
+
+class UnsupportedVersionError(MMPAError):
+    """A task store or bundle was written by a newer mmpa (schema or format version)."""
+
+
+class TaskExistsError(MMPAError, ValueError):
+    """Saving or importing a task whose name is taken, without ``overwrite``."""

@@ -33,14 +33,16 @@ __all__ = [
 
 @dataclass(frozen=True)
 class PointCloud:
-    """A colored point cloud: ``points`` (N, 3) m in ``frame``, ``colors`` (N, 3) in [0, 1]."""
+    """A colored point cloud: ``points`` (N, 3) m in ``frame``, ``colors`` (N, 3) in [0, 1]
+    or None for a colorless cloud (e.g. a depth-only sensor)."""
 
     points: Array
-    colors: Array
+    colors: Array | None
     frame: str = "camera"
 
     def __post_init__(self) -> None:
-        p, c = np.asarray(self.points), np.asarray(self.colors)
+        p = np.asarray(self.points)
+        c = p if self.colors is None else np.asarray(self.colors)
         if p.ndim != 2 or p.shape[1] != 3 or c.shape != p.shape:
             raise InvalidInputError(
                 f"point cloud needs points (N,3) and colors (N,3); got {p.shape} and {c.shape}"

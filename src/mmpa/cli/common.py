@@ -1,0 +1,18 @@
+"""Helpers shared by the CLI sub-apps (kept free of imports of ``mmpa.cli.main``)."""
+
+from __future__ import annotations
+
+from typing import NoReturn
+
+import typer
+from rich.console import Console
+
+from mmpa.errors import MMPAError
+
+console = Console()
+
+
+def fail(e: MMPAError) -> NoReturn:
+    """Print ``e`` in red and exit with status 2 (the CLI's error code for bad input)."""
+    console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
+    raise typer.Exit(2)
