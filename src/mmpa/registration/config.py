@@ -33,10 +33,10 @@ class IcpScale(_Frozen):
 
 
 _COARSE_TO_FINE = (
-    IcpScale(voxel=0.02, max_distance=0.03, max_iter=12),
-    IcpScale(voxel=0.01, max_distance=0.012, max_iter=12),
+    IcpScale(voxel=0.02, max_distance=0.03, max_iter=10),
+    IcpScale(voxel=0.01, max_distance=0.012, max_iter=8),
 )
-_NEAR = (IcpScale(voxel=0.01, max_distance=0.012, max_iter=10),)
+_NEAR = (IcpScale(voxel=0.01, max_distance=0.012, max_iter=8),)
 
 
 class RegistrationConfig(_Frozen):
@@ -79,13 +79,13 @@ class RegistrationConfig(_Frozen):
     outlier_neighbors: int = Field(default=12, ge=0)
     outlier_std_ratio: float = Field(default=3.0, gt=0)
     normal_radius_factor: float = Field(default=2.0, gt=0)
-    normal_max_nn: int = Field(default=20, ge=3)
+    normal_max_nn: int = Field(default=12, ge=3)
     # coarse stage: FPFH + FGR
     coarse_voxel: float = Field(default=0.02, gt=0)
     fpfh_radius_factor: float = Field(default=5.0, gt=0)
-    fpfh_max_nn: int = Field(default=100, ge=3)
+    fpfh_max_nn: int = Field(default=50, ge=3)
     fgr_distance_factor: float = Field(default=0.5, gt=0)
-    fgr_iterations: int = Field(default=64, ge=1)
+    fgr_iterations: int = Field(default=32, ge=1)
     fgr_max_tuples: int = Field(default=1000, ge=10)
     # fine stage
     scales: tuple[IcpScale, ...] = Field(default=_COARSE_TO_FINE, min_length=1)

