@@ -137,6 +137,7 @@ def main() -> None:
         k: [] for k in ("reference", "cold", "ipe_first", "ref_near", "ipe_init")
     }
     t_prep = []
+    shifts: list[tuple[float, float]] = []
     stage_t: dict[str, dict[str, list[float]]] = {"ipe_first": {}, "ipe_init": {}}
 
     def keep_stages(case: str, st: dict) -> None:
@@ -155,6 +156,9 @@ def main() -> None:
         r = register(P, cur, cfg)
         rows["ipe_first"].append((*errs(T_true, r.T), r.seconds, r.ok))
         keep_stages("ipe_first", r.stages)
+        shifts.append(
+            (r.stages.get("fine_shift_m", np.nan), r.stages.get("fine_rotation_deg", np.nan))
+        )
         if not r.ok:
             print("  failed:", r.reason)
     P = prepare(taught, cfg)
@@ -191,6 +195,12 @@ def main() -> None:
     print(
         f"\nprepare(taught) median {np.median(t_prep):.4f} s; IPE registration compute "
         f"estimate (prepare + k=1 + 3 x init) {ipe:.3f} s (target <= 0.5 s)"
+    )
+    sh = np.array(shifts)
+    print(
+        f"fine stage moved from the FGR pose by up to {1e3 * sh[:, 0].max():.1f} mm / "
+        f"{sh[:, 1].max():.2f} deg (limits {1e3 * cfg.max_fine_shift:.0f} mm / "
+        f"{cfg.max_fine_rotation_deg} deg)"
     )
     for case, st in stage_t.items():
         print(
