@@ -74,6 +74,13 @@ def test_init_near_taught_viewpoint(twin: TwinPairs) -> None:
     assert r2.ok and translation_error(twin.truth["park_a"], r2.T) < 2e-3
 
 
+def test_init_far_from_the_truth_is_refused(twin: TwinPairs) -> None:
+    """A parking error of ~5 cm is too far for the fine stage alone: refused, not a bad pose."""
+    r = register(twin.taught, twin.current["park_b"], init=np.eye(4))
+    assert not r.ok
+    assert "initial pose rejected" in r.reason
+
+
 def test_colorless_twin_pair_uses_point_to_plane(twin: TwinPairs) -> None:
     """Paper Table A.7 Ex B.0: the bench without color is still registered by geometry."""
     gray = {k: PointCloud(c.points, np.full_like(c.points, 0.5)) for k, c in twin.current.items()}

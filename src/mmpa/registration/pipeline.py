@@ -413,7 +413,7 @@ def register(
             False,
             f"fine stage moved {shift * 1e3:.1f} mm / {rot:.2f} deg from the "
             f"{what} pose (limits {max_shift * 1e3:.0f} mm / {max_rot:.1f} deg): "
-            f"{what} pose rejected",
+            f"{what} pose rejected" + ("; register without init" if init is not None else ""),
             fit,
             rmse,
             n,
