@@ -1,0 +1,140 @@
+"""Configuration of the colored point cloud global registration (paper 000 §3.2.2 II).
+
+Every length is in metres and every default is scaled to a workbench seen by the wrist camera
+from 0.4-1.0 m (the paper's sampling distance), where a 640x480 depth frame holds ~300k points
+with ~1 mm spacing.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+__all__ = ["IcpScale", "RegistrationConfig"]
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class IcpScale(_Frozen):
+    """One level of the multi-scale ICP (Park et al. 2017, §4 "multi-scale").
+
+    ``voxel``: voxel size (m) of both clouds at this level; ``max_distance``: correspondence
+    gate (m); ``max_iter``: Gauss-Newton iterations; the level stops early when the relative
+    change of fitness and inlier RMSE drops below ``relative``.
+    """
+
+    voxel: float = Field(gt=0)
+    max_distance: float = Field(gt=0)
+    max_iter: int = Field(ge=1)
+    relative: float = Field(default=1e-4, ge=0)
+
+
+_COARSE_TO_FINE = (
+    IcpScale(voxel=0.02, max_distance=0.03, max_iter=10),
+    IcpScale(voxel=0.01, max_distance=0.012, max_iter=8),
+)
+_NEAR = (IcpScale(voxel=0.01, max_distance=0.012, max_iter=8),)
+
+
+class RegistrationConfig(_Frozen):
+    """Parameters of :func:`mmpa.registration.prepare` and :func:`mmpa.registration.register`.
+
+    Preprocessing (applied once per cloud by ``prepare``)
+        ``min_depth``/``max_depth`` crop on the optical axis z (m); ``nan_policy``: drop
+        non-finite points (``"filter"``, counted in the diagnostics) or refuse the cloud
+        (``"reject"``); every ``presample``-th point is kept (an RGB-D frame is far denser
+        than the finest voxel: 1 mm spacing at 0.6 m); the cloud is voxel-averaged at the
+        finest ICP voxel and cleaned by a statistical outlier filter on that voxel cloud (a
+        voxel whose mean distance to its ``outlier_neighbors`` nearest voxels exceeds the
+        mean by ``outlier_std_ratio`` standard deviations is a flying pixel; 0 disables it);
+        normals from ``normal_max_nn`` neighbours within ``normal_radius_factor`` voxels,
+        oriented to the camera.
+    Coarse stage (Zhou et al. 2016, FGR)
+        FPFH at ``coarse_voxel`` with radius ``fpfh_radius_factor * coarse_voxel``; FGR with
+        ``fgr_distance_factor * coarse_voxel`` as its final correspondence distance,
+        ``fgr_iterations`` graduated non-convexity iterations, ``fgr_max_tuples`` tuples.
+    Fine stage (Park et al. 2017, colored ICP; point-to-plane ICP without color)
+        ``scales`` from the coarse pose, ``init_scales`` when the caller gives ``init``;
+        ``lambda_geometric`` weights the geometric against the photometric term (Park's 0.968).
+        ``color_mode``: ``"auto"`` uses colored ICP when both clouds carry color (color std over
+        the cloud above ``min_color_std``), else point-to-plane.
+    Acceptance (the result is ``ok`` only if all hold)
+        ``min_points`` voxels in each cloud; ``min_fitness`` inlier fraction and ``max_rmse``
+        at the finest scale; ``min_correspondences`` inlier pairs; the fine pose within
+        ``max_fine_shift``/``max_fine_rotation_deg`` of the FGR pose, or within
+        ``max_init_shift``/``max_init_rotation_deg`` of a given ``init`` (tight on purpose: a
+        single fine-scale ICP started several cm off can slide along the bench planes into a
+        wrong minimum with normal fitness; measured on the twin, 8 cm off gave a 32 mm error
+        at fitness 0.79, so farther starts must use the global stage);
+        smallest eigenvalue of the per-correspondence information matrix of the ICP objective
+        at least ``min_information`` (degenerate geometry: a plane, a cylinder...), where color
+        gradients smaller than ``min_color_gradient`` (intensity per m) count as no texture.
+    ``seed`` seeds Open3D's random draws (FGR tuples).
+    """
+
+    # preprocessing
+    min_depth: float = Field(default=0.2, ge=0)
+    max_depth: float = Field(default=1.5, gt=0)
+    nan_policy: Literal["filter", "reject"] = "filter"
+    presample: int = Field(default=4, ge=1)
+    outlier_neighbors: int = Field(default=12, ge=0)
+    outlier_std_ratio: float = Field(default=3.0, gt=0)
+    normal_radius_factor: float = Field(default=2.0, gt=0)
+    normal_max_nn: int = Field(default=12, ge=3)
+    # coarse stage: FPFH + FGR
+    coarse_voxel: float = Field(default=0.02, gt=0)
+    fpfh_radius_factor: float = Field(default=5.0, gt=0)
+    fpfh_max_nn: int = Field(default=50, ge=3)
+    fgr_distance_factor: float = Field(default=0.5, gt=0)
+    fgr_iterations: int = Field(default=64, ge=1)
+    fgr_max_tuples: int = Field(default=1000, ge=10)
+    # fine stage
+    scales: tuple[IcpScale, ...] = Field(default=_COARSE_TO_FINE, min_length=1)
+    init_scales: tuple[IcpScale, ...] = Field(default=_NEAR, min_length=1)
+    lambda_geometric: float = Field(default=0.968, gt=0, le=1)
+    color_mode: Literal["auto", "colored", "geometric"] = "auto"
+    min_color_std: float = Field(default=1e-3, ge=0)
+    # acceptance
+    min_points: int = Field(default=200, ge=10)
+    min_fitness: float = Field(default=0.5, ge=0, le=1)
+    max_rmse: float = Field(default=0.006, gt=0)
+    min_correspondences: int = Field(default=200, ge=6)
+    max_fine_shift: float = Field(default=0.05, gt=0)
+    max_fine_rotation_deg: float = Field(default=10.0, gt=0)
+    max_init_shift: float = Field(default=0.02, gt=0)
+    max_init_rotation_deg: float = Field(default=3.0, gt=0)
+    min_information: float = Field(default=2e-3, ge=0)
+    min_color_gradient: float = Field(default=2.0, ge=0)
+    degeneracy_max_points: int = Field(default=3000, ge=100)
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _check(self) -> RegistrationConfig:
+        if self.max_depth <= self.min_depth:
+            raise ValueError(f"max_depth {self.max_depth} must exceed min_depth {self.min_depth}")
+        return self
+
+    @property
+    def fine_voxel(self) -> float:
+        """The finest voxel of both ICP schedules: the resolution ``prepare`` keeps."""
+        return min(s.voxel for s in (*self.scales, *self.init_scales))
+
+    def preprocessing_key(self) -> tuple:
+        """The fields that determine a :class:`~mmpa.registration.Prepared` cloud."""
+        return (
+            self.min_depth,
+            self.max_depth,
+            self.nan_policy,
+            self.presample,
+            self.outlier_neighbors,
+            self.outlier_std_ratio,
+            self.normal_radius_factor,
+            self.normal_max_nn,
+            self.coarse_voxel,
+            self.fpfh_radius_factor,
+            self.fpfh_max_nn,
+            tuple(sorted({s.voxel for s in (*self.scales, *self.init_scales)})),
+        )

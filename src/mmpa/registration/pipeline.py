@@ -1,0 +1,478 @@
+"""Colored point cloud global registration (paper 000 §3.2.2 II): FPFH + FGR, then colored ICP.
+
+Given a source cloud ``X_s`` and a target cloud ``X_t`` (both in their camera's optical frame,
+metres), estimate ``T = T_target_source`` such that ``p_t = T p_s`` (paper eq. 3 with
+``[dR_Ck, dt_Ck] = T`` when the taught cloud X_i(O) is the source and the current X_i(k) the
+target). Stages:
+
+1. ``prepare`` (once per cloud): crop ``z`` to ``[min_depth, max_depth]``, drop non-finite points,
+   voxel-average at the finest ICP voxel, remove statistical outliers, build the voxel pyramid
+   of the ICP schedule, estimate normals oriented to the camera, FPFH (Rusu 2009) at the coarse
+   voxel (lazily, only when a global stage needs it).
+2. Coarse: Fast Global Registration (Zhou et al. 2016): mutual FPFH matches, tuple test, then
+   the scaled Geman-McClure objective ``sum rho(||q - T p||)`` by graduated non-convexity.
+3. Fine: multi-scale colored ICP (Park et al. 2017). Per level it minimises
+   ``E(T) = (1 - lambda) sum r_C^2 + lambda sum r_G^2`` with the geometric residual
+   ``r_G = (T s - q) . n_q`` (point-to-plane) and the photometric residual
+   ``r_C = C_q(f(T s)) - C(s)``, ``C_q`` the color of ``q`` extended linearly on its tangent
+   plane by the gradient ``d_q`` and ``f`` the projection on that plane; lambda = 0.968.
+   Without color (a cloud with constant color) it is point-to-plane ICP (paper Table A.7
+   Ex A.0/B.0, footnote 14).
+4. Validation: the pose is returned with ``ok=False`` and a reason unless the clouds are large
+   enough, the fine stage has enough inlier correspondences, fitness and RMSE pass, the fine
+   pose stays near the coarse (or given) pose, and the objective constrains all six degrees of
+   freedom: with the linearised residual rows ``J_G = [((s - c) x n)/L, n]`` and
+   ``J_C = [((s - c) x d)/L, d]`` (twist about the centroid ``c`` with rotations scaled by the
+   cloud radius ``L``), the information matrix
+   ``H = (lambda sum J_G^T J_G + (1 - lambda) sum J_C^T J_C) / N`` must have its smallest
+   eigenvalue above ``min_information``. A single plane of one color leaves three directions
+   with ``H`` ~ 0 (two in-plane translations, the rotation about the normal); texture on the
+   plane fills them through ``d``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from mmpa.errors import ConfigError, InvalidInputError
+from mmpa.geometry import Array
+from mmpa.registration.config import IcpScale, RegistrationConfig
+
+__all__ = ["Prepared", "Registration", "information_matrix", "prepare", "register"]
+
+_reg = o3d.pipelines.registration
+_KD = o3d.geometry.KDTreeSearchParamHybrid
+
+
+@dataclass(frozen=True)
+class Registration:
+    """Result of :func:`register`.
+
+    ``T`` (4, 4) is ``T_target_source`` (``p_target = T p_source``, metres); ``fitness`` the
+    inlier fraction of the source at the finest ICP scale; ``rmse`` the inlier RMSE (m) there;
+    ``ok`` whether every acceptance check passed, else ``reason`` says which failed (``T`` is
+    then the last estimate, for diagnostics only: never act on it); ``n_correspondences`` the
+    inlier pairs of the finest scale; ``seconds`` the wall time of the call; ``stages`` the
+    per-stage timings and diagnostics (``min_information``, ``coarse_shift``...).
+    """
+
+    T: Array
+    fitness: float
+    rmse: float
+    ok: bool
+    reason: str
+    n_correspondences: int
+    seconds: float
+    stages: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    """A cloud cleaned and downsampled once by :func:`prepare`, reusable across calls.
+
+    ``levels`` maps each ICP voxel size (m) to an Open3D cloud with normals (and colors);
+    ``coarse`` is the cloud at ``coarse_voxel``; ``colored`` whether the cloud carries color;
+    ``reason`` is non-empty when the cloud is unusable (too few points, non-finite points with
+    ``nan_policy="reject"``); ``stats`` holds counts and timings.
+    """
+
+    levels: dict[float, o3d.geometry.PointCloud]
+    coarse: o3d.geometry.PointCloud
+    colored: bool
+    reason: str
+    key: tuple
+    stats: dict[str, Any]
+    _cache: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    @property
+    def n_points(self) -> int:
+        """Points at the finest voxel level."""
+        return len(self.levels[min(self.levels)].points) if self.levels else 0
+
+    def fpfh(self, cfg: RegistrationConfig) -> o3d.pipelines.registration.Feature:
+        """FPFH descriptors (33-d) of :attr:`coarse`, computed on first use and cached."""
+        if "fpfh" not in self._cache:
+            t0 = time.perf_counter()
+            r = cfg.fpfh_radius_factor * cfg.coarse_voxel
+            self._cache["fpfh"] = _reg.compute_fpfh_feature(self.coarse, _KD(r, cfg.fpfh_max_nn))
+            self.stats["fpfh_s"] = time.perf_counter() - t0
+        return self._cache["fpfh"]
+
+
+def _empty(key: tuple, reason: str, stats: dict[str, Any]) -> Prepared:
+    return Prepared({}, o3d.geometry.PointCloud(), False, reason, key, stats)
+
+
+def _normals(pc: o3d.geometry.PointCloud, voxel: float, cfg: RegistrationConfig) -> None:
+    pc.estimate_normals(_KD(cfg.normal_radius_factor * voxel, cfg.normal_max_nn))
+    pc.orient_normals_towards_camera_location(np.zeros(3))
+
+
+def prepare(
+    cloud: Any, cfg: RegistrationConfig | None = None, *, features: bool = True
+) -> Prepared:
+    """Crop, clean, downsample, estimate normals (and FPFH if ``features``) once.
+
+    ``cloud`` is a :class:`mmpa.robot.interfaces.PointCloud` (or any object with ``points``
+    (N, 3) m in the camera optical frame and ``colors`` (N, 3) in [0, 1] or ``None``). Raises
+    :class:`InvalidInputError` for arrays of the wrong shape; an empty or non-finite cloud gives
+    a :class:`Prepared` with a ``reason`` (``register`` then returns ``ok=False``).
+    """
+    cfg = cfg or RegistrationConfig()
+    t0 = time.perf_counter()
+    key = cfg.preprocessing_key()
+    pts = np.asarray(getattr(cloud, "points", None), dtype=float)
+    cols = getattr(cloud, "colors", None)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InvalidInputError(f"cloud points must be (N, 3), got {pts.shape}")
+    if cols is not None:
+        cols = np.asarray(cols, dtype=float)
+        if cols.shape != pts.shape:
+            raise InvalidInputError(f"cloud colors {cols.shape} do not match points {pts.shape}")
+    stats: dict[str, Any] = {"n_input": len(pts)}
+    # one reduction over the whole array is ~10x cheaper than a per-row test
+    all_finite = np.isfinite(pts.sum()) and (cols is None or np.isfinite(cols.sum()))
+    finite = np.ones(len(pts), bool)
+    if not all_finite:
+        finite = np.isfinite(pts).all(axis=1)
+        if cols is not None:
+            finite &= np.isfinite(cols).all(axis=1)
+    n_bad = int(len(pts) - np.count_nonzero(finite))
+    stats["n_nonfinite"] = n_bad
+    if n_bad and cfg.nan_policy == "reject":
+        return _empty(key, f"cloud has {n_bad} non-finite points (nan_policy='reject')", stats)
+    if cfg.presample > 1:
+        pts, finite = pts[:: cfg.presample], finite[:: cfg.presample]
+        cols = None if cols is None else cols[:: cfg.presample]
+    z = pts[:, 2]
+    keep = finite & (z >= cfg.min_depth) & (z <= cfg.max_depth)
+    stats["n_cropped"] = int(np.count_nonzero(keep))
+    if stats["n_cropped"] < cfg.min_points:
+        what = f"{stats['n_input']} points" + (f", {n_bad} non-finite" if n_bad else "")
+        return _empty(
+            key,
+            f"too few points: {stats['n_cropped']} of {what} in depth "
+            f"[{cfg.min_depth}, {cfg.max_depth}] m (need {cfg.min_points})",
+            stats,
+        )
+    pts = pts[keep]
+    colored = False
+    if cols is not None:
+        cols = np.clip(cols[keep], 0.0, 1.0)
+        sample = cols[:: max(1, len(cols) // 5000)]
+        colored = bool((sample.std(axis=0) > cfg.min_color_std).any())
+    raw = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    if colored:
+        raw.colors = o3d.utility.Vector3dVector(cols)
+    voxels = sorted({s.voxel for s in (*cfg.scales, *cfg.init_scales)})
+    fine = raw.voxel_down_sample(voxels[0])
+    if cfg.outlier_neighbors > 0 and len(fine.points) > cfg.outlier_neighbors + 1:
+        fine, _ = fine.remove_statistical_outlier(cfg.outlier_neighbors, cfg.outlier_std_ratio)
+    stats["n_fine"] = len(fine.points)
+    if len(fine.points) < cfg.min_points:
+        return _empty(
+            key,
+            f"too few points: {len(fine.points)} voxels of {voxels[0]} m after cleaning "
+            f"(need {cfg.min_points})",
+            stats,
+        )
+    levels = {voxels[0]: fine}
+    for v in voxels[1:]:
+        levels[v] = fine.voxel_down_sample(v)
+    for v, pc in levels.items():
+        _normals(pc, v, cfg)
+    coarse = levels.get(cfg.coarse_voxel)
+    if coarse is None:
+        coarse = fine.voxel_down_sample(cfg.coarse_voxel)
+        _normals(coarse, cfg.coarse_voxel, cfg)
+    stats["n_coarse"] = len(coarse.points)
+    prep = Prepared(levels, coarse, colored, "", key, stats)
+    if features:
+        prep.fpfh(cfg)
+    stats["prepare_s"] = time.perf_counter() - t0
+    return prep
+
+
+def _as_prepared(x: Any, cfg: RegistrationConfig, features: bool, name: str) -> Prepared:
+    if isinstance(x, Prepared):
+        if x.key != cfg.preprocessing_key():
+            raise ConfigError(
+                f"{name} was prepared with other preprocessing settings than this config; "
+                "call prepare() again with the same RegistrationConfig"
+            )
+        return x
+    return prepare(x, cfg, features=features)
+
+
+def _centroid_motion(T_a: Array, T_b: Array, c: Array) -> tuple[float, float]:
+    """Displacement (m) of point ``c`` and rotation angle (deg) between two poses."""
+    d = float(np.linalg.norm((T_a[:3, :3] - T_b[:3, :3]) @ c + T_a[:3, 3] - T_b[:3, 3]))
+    R = T_a[:3, :3] @ T_b[:3, :3].T
+    ang = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+    return d, ang
+
+
+def _color_gradients(
+    pts: Array, normals: Array, intensity: Array, idx: Array, radius: float, k: int
+) -> Array:
+    """Park et al. 2017 eq. 10: the tangent-plane gradient ``d_q`` of the color intensity at
+    the points ``idx`` (least squares over neighbours within ``radius``, with ``d . n = 0``)."""
+    tree = cKDTree(pts)
+    dist, nb = tree.query(pts[idx], k=k, distance_upper_bound=radius)
+    valid = np.isfinite(dist)
+    nb = np.where(valid, nb, idx[:, None])
+    A = pts[nb] - pts[idx][:, None, :]  # (M, k, 3)
+    b = intensity[nb] - intensity[idx][:, None]  # (M, k)
+    w = valid.astype(float)
+    n = normals[idx]
+    kk = w.sum(axis=1)[:, None, None]
+    AtA = np.einsum("mki,mkj,mk->mij", A, A, w) + kk * np.einsum("mi,mj->mij", n, n)
+    Atb = np.einsum("mki,mk,mk->mi", A, b, w)
+    AtA += 1e-12 * np.eye(3)
+    return np.linalg.solve(AtA, Atb[..., None])[..., 0]
+
+
+def information_matrix(
+    src_points: Array,
+    tgt_normals: Array,
+    color_gradients: Array | None = None,
+    lambda_geometric: float = 0.968,
+) -> Array:
+    """The per-correspondence 6x6 Gauss-Newton information of the (colored) ICP objective.
+
+    ``src_points`` (N, 3) m: transformed source points of the inlier pairs; ``tgt_normals``
+    (N, 3) unit normals of their targets; ``color_gradients`` (N, 3) intensity/m, or ``None``
+    for point-to-plane ICP. The twist is ``[w, v]`` about the centroid ``c`` of the points with
+    rotations scaled by the RMS radius ``L``: rows ``J_G = [((s - c) x n)/L, n]``,
+    ``J_C = [((s - c) x d)/L, d]``; returns ``(lambda J_G^T J_G + (1 - lambda) J_C^T J_C) / N``
+    (dimensionless for the geometric part: 1 means every pair fully constrains a direction).
+    """
+    s = np.asarray(src_points, float)
+    c = s.mean(axis=0)
+    r = s - c
+    L = max(float(np.sqrt((r**2).sum(axis=1).mean())), 1e-9)
+    J = np.hstack([np.cross(r, tgt_normals) / L, tgt_normals])
+    H = lambda_geometric * J.T @ J
+    if color_gradients is not None:
+        Jc = np.hstack([np.cross(r, color_gradients) / L, color_gradients])
+        H = H + (1.0 - lambda_geometric) * Jc.T @ Jc
+    return H / max(len(s), 1)
+
+
+def _icp(
+    src: Prepared,
+    tgt: Prepared,
+    T: Array,
+    scales: tuple[IcpScale, ...],
+    colored: bool,
+    cfg: RegistrationConfig,
+    stages: dict[str, Any],
+) -> tuple[Array, Any, IcpScale]:
+    est = (
+        _reg.TransformationEstimationForColoredICP(lambda_geometric=cfg.lambda_geometric)
+        if colored
+        else _reg.TransformationEstimationPointToPlane()
+    )
+    res = None
+    for i, sc in enumerate(scales):
+        t0 = time.perf_counter()
+        crit = _reg.ICPConvergenceCriteria(sc.relative, sc.relative, sc.max_iter)
+        a, b = src.levels[sc.voxel], tgt.levels[sc.voxel]
+        if colored:
+            res = _reg.registration_colored_icp(a, b, sc.max_distance, T, est, crit)
+        else:
+            res = _reg.registration_icp(a, b, sc.max_distance, T, est, crit)
+        T = np.asarray(res.transformation).copy()
+        stages[f"icp{i}_s"] = time.perf_counter() - t0
+        stages[f"icp{i}_fitness"] = float(res.fitness)
+    return T, res, scales[-1]
+
+
+def register(
+    source: Any,
+    target: Any,
+    cfg: RegistrationConfig | None = None,
+    *,
+    init: Array | None = None,
+) -> Registration:
+    """Estimate ``T_target_source`` (``p_target = T p_source``) between two colored clouds.
+
+    ``source``/``target``: :class:`~mmpa.robot.interfaces.PointCloud` or :class:`Prepared`
+    (prepared with the same ``cfg``). Without ``init`` the coarse pose comes from FPFH + FGR;
+    with ``init`` (4, 4) the global stage is skipped and the fine stage runs ``init_scales``
+    from it. The result is always validated; failures return ``ok=False`` with a reason.
+    """
+    cfg = cfg or RegistrationConfig()
+    t0 = time.perf_counter()
+    stages: dict[str, Any] = {}
+    if init is not None:
+        init = np.asarray(init, dtype=float)
+        if init.shape != (4, 4) or not np.isfinite(init).all():
+            raise InvalidInputError(f"init must be a finite 4x4 transform, got shape {init.shape}")
+        R = init[:3, :3]
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise InvalidInputError("init rotation block is not a proper rotation")
+    need_features = init is None
+    src = _as_prepared(source, cfg, need_features, "source")
+    tgt = _as_prepared(target, cfg, need_features, "target")
+    stages["prepare_s"] = time.perf_counter() - t0
+
+    def result(
+        T: Array, ok: bool, reason: str, fit: float = 0.0, rmse: float = np.inf, n: int = 0
+    ) -> Registration:
+        return Registration(
+            T=np.asarray(T, float),
+            fitness=float(fit),
+            rmse=float(rmse),
+            ok=ok,
+            reason=reason,
+            n_correspondences=int(n),
+            seconds=time.perf_counter() - t0,
+            stages=stages,
+        )
+
+    for name, p in (("source", src), ("target", tgt)):
+        if p.reason:
+            return result(np.eye(4), False, f"{name}: {p.reason}")
+    if cfg.color_mode == "geometric":
+        colored = False
+    elif cfg.color_mode == "colored":
+        if not (src.colored and tgt.colored):
+            return result(np.eye(4), False, "color_mode='colored' but a cloud has no color")
+        colored = True
+    else:
+        colored = src.colored and tgt.colored
+    stages["method"] = "colored_icp" if colored else "point_to_plane_icp"
+
+    if init is None:
+        t1 = time.perf_counter()
+        fs, ft = src.fpfh(cfg), tgt.fpfh(cfg)
+        stages["features_s"] = time.perf_counter() - t1
+        t1 = time.perf_counter()
+        o3d.utility.random.seed(cfg.seed)
+        opt = _reg.FastGlobalRegistrationOption(
+            maximum_correspondence_distance=cfg.fgr_distance_factor * cfg.coarse_voxel,
+            iteration_number=cfg.fgr_iterations,
+            maximum_tuple_count=cfg.fgr_max_tuples,
+        )
+        coarse = _reg.registration_fgr_based_on_feature_matching(
+            src.coarse, tgt.coarse, fs, ft, opt
+        )
+        T0 = np.asarray(coarse.transformation).copy()
+        stages["coarse_s"] = time.perf_counter() - t1
+        stages["coarse_fitness"] = float(coarse.fitness)
+        scales = cfg.scales
+        max_shift, max_rot, what = cfg.max_fine_shift, cfg.max_fine_rotation_deg, "coarse"
+    else:
+        T0 = init
+        scales = cfg.init_scales
+        max_shift, max_rot, what = cfg.max_init_shift, cfg.max_init_rotation_deg, "initial"
+    stages["T_coarse"] = T0
+
+    try:
+        T, res, last = _icp(src, tgt, T0, scales, colored, cfg, stages)
+    except RuntimeError as e:  # Open3D refuses e.g. clouds without enough neighbours
+        return result(T0, False, f"fine stage failed: {e}")
+    corr = np.asarray(res.correspondence_set)
+    fit, rmse, n = float(res.fitness), float(res.inlier_rmse), len(corr)
+    src_fine = np.asarray(src.levels[last.voxel].points)
+    c = src_fine.mean(axis=0)
+    shift, rot = _centroid_motion(T, T0, c)
+    stages["fine_shift_m"], stages["fine_rotation_deg"] = shift, rot
+    if n < cfg.min_correspondences:
+        return result(
+            T,
+            False,
+            f"too few correspondences: {n} < {cfg.min_correspondences} (no overlap?)",
+            fit,
+            rmse,
+            n,
+        )
+    if fit < cfg.min_fitness:
+        return result(
+            T,
+            False,
+            f"low fitness {fit:.3f} < {cfg.min_fitness} (little overlap or wrong pose)",
+            fit,
+            rmse,
+            n,
+        )
+    if rmse > cfg.max_rmse:
+        return result(
+            T, False, f"inlier RMSE {rmse * 1e3:.2f} mm > {cfg.max_rmse * 1e3:.2f} mm", fit, rmse, n
+        )
+    if shift > max_shift or rot > max_rot:
+        return result(
+            T,
+            False,
+            f"fine stage moved {shift * 1e3:.1f} mm / {rot:.2f} deg from the "
+            f"{what} pose (limits {max_shift * 1e3:.0f} mm / {max_rot:.1f} deg): "
+            f"{what} pose rejected" + ("; register without init" if init is not None else ""),
+            fit,
+            rmse,
+            n,
+        )
+    t1 = time.perf_counter()
+    lam_min, weak = _min_information(src, tgt, T, corr, last, colored, cfg)
+    stages["degeneracy_s"] = time.perf_counter() - t1
+    stages["min_information"] = lam_min
+    if lam_min < cfg.min_information:
+        return result(
+            T,
+            False,
+            f"degenerate geometry: the {stages['method']} objective does not "
+            f"constrain the direction {weak} (information {lam_min:.2e} < "
+            f"{cfg.min_information:.1e}; a single plane without texture?)",
+            fit,
+            rmse,
+            n,
+        )
+    return result(T, True, "", fit, rmse, n)
+
+
+_DOF = ("rx", "ry", "rz", "x", "y", "z")
+
+
+def _direction(v: Array) -> str:
+    parts = [f"{v[i]:+.2f}{_DOF[i]}" for i in np.argsort(-np.abs(v))[:2] if abs(v[i]) > 0.2]
+    return "[" + " ".join(parts) + "] (camera frame, twist about the centroid)"
+
+
+def _min_information(
+    src: Prepared,
+    tgt: Prepared,
+    T: Array,
+    corr: Array,
+    sc: IcpScale,
+    colored: bool,
+    cfg: RegistrationConfig,
+) -> tuple[float, str]:
+    """Smallest eigenvalue (and its direction) of :func:`information_matrix` at ``T``."""
+    if len(corr) > cfg.degeneracy_max_points:
+        corr = corr[:: int(np.ceil(len(corr) / cfg.degeneracy_max_points))]
+    a, b = src.levels[sc.voxel], tgt.levels[sc.voxel]
+    s = np.asarray(a.points)[corr[:, 0]] @ T[:3, :3].T + T[:3, 3]
+    n_t = np.asarray(b.normals)[corr[:, 1]]
+    lam = cfg.lambda_geometric
+    w, V = np.linalg.eigh(information_matrix(s, n_t, None, lam))
+    if w[0] >= cfg.min_information or not colored:
+        return float(w[0]), _direction(V[:, 0])
+    pts_t = np.asarray(b.points)
+    intensity = np.asarray(b.colors).mean(axis=1)
+    d = _color_gradients(
+        pts_t,
+        np.asarray(b.normals),
+        intensity,
+        corr[:, 1],
+        cfg.normal_radius_factor * sc.voxel,
+        min(cfg.normal_max_nn, 12),
+    )
+    d[np.linalg.norm(d, axis=1) < cfg.min_color_gradient] = 0.0
+    w, V = np.linalg.eigh(information_matrix(s, n_t, d, lam))
+    return float(w[0]), _direction(V[:, 0])
