@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from mmpa.errors import InvalidInputError, UnreachableError
-from mmpa.geometry import Array, as_transform, inv
+from mmpa.geometry import Array, as_transform, inv, make_T
 from mmpa.ipe.core import (
     DEFAULT_ALPHA,
     alpha_vector,
@@ -50,6 +50,14 @@ FINAL_REFINEMENT = RegistrationConfig(
     presample=2, init_scales=(IcpScale(voxel=0.004, max_distance=0.006, max_iter=15),)
 )
 
+#: first registration from the localization prior: the 2D prior misses z, roll and pitch
+#: (terrain), so start coarse with a wide gate and accept a larger correction
+PRIOR_SCALES = (
+    IcpScale(voxel=0.02, max_distance=0.08, max_iter=15),
+    IcpScale(voxel=0.02, max_distance=0.04, max_iter=10),
+    IcpScale(voxel=0.01, max_distance=0.015, max_iter=10),
+)
+
 _PREPARED: list[tuple[PointCloud, tuple, Prepared]] = []
 
 
@@ -76,6 +84,9 @@ class IPEConfig(BaseModel):
     global_each_iteration: bool = False  # paper: True (FGR + colored ICP every time)
     min_depth: float = Field(0.2, gt=0)  # m, crop of the captured cloud
     max_depth: float = Field(1.5, gt=0)
+    retreat: float = Field(0.15, ge=0)  # m the camera backs off when the first view fails
+    prior_max_shift: float = Field(0.12, gt=0)  # m: correction accepted from the prior
+    prior_max_rotation: float = Field(np.deg2rad(12.0), gt=0)  # rad
     max_translation: float = Field(1.0, gt=0)  # m: larger |dT_B| is implausible -> False
     max_rotation: float = Field(np.deg2rad(60.0), gt=0)  # rad
     registration: RegistrationConfig = RegistrationConfig()
@@ -197,6 +208,7 @@ class IPE:
                 q_next = self.camera_joints(camera_target(prior, T_Bo_Co), q_next)
             except UnreachableError:
                 prior = None  # the taught joints, as in the paper
+        retreated = False
         for k in range(1, cfg.beta + 1):
             if progress:
                 progress(f"IPE iteration {k}", (k - 1) / cfg.beta)
@@ -216,9 +228,19 @@ class IPE:
             guess = result.dT_B if result.dT_B is not None else prior
             if guess is not None and not cfg.global_each_iteration:
                 init = inv(T_Bk_Ck) @ guess @ T_Bo_Co
-            reg = register(source, cloud, cfg.registration, init=init)
-            if not reg.ok and init is not None and result.dT_B is None:
-                reg = register(source, cloud, cfg.registration)  # the prior was off: go global
+            if init is not None and result.dT_B is None:  # first view, from the prior
+                wide = cfg.registration.model_copy(
+                    update={
+                        "init_scales": PRIOR_SCALES,
+                        "max_init_shift": cfg.prior_max_shift,
+                        "max_init_rotation_deg": float(np.rad2deg(cfg.prior_max_rotation)),
+                    }
+                )
+                reg = register(source, cloud, wide, init=init)
+                if not reg.ok:  # the prior was off: global registration as in the paper
+                    reg = register(source, cloud, cfg.registration)
+            else:
+                reg = register(source, cloud, cfg.registration, init=init)
             t4 = time.perf_counter()
             dT_B = delta_T_B(T_Bk_Ck, reg.T, T_Bo_Co) if reg.ok else None
             it = IPEIteration(
@@ -226,6 +248,17 @@ class IPE:
             )
             result.iterations.append(it)
             if not reg.ok or dT_B is None:
+                if result.dT_B is None and not retreated and cfg.retreat > 0 and k < cfg.beta:
+                    # beyond the paper: no estimate yet (little overlap, e.g. a tilted base):
+                    # step the camera back along its optical axis for a wider view, try again
+                    retreated = True
+                    back = T_Bk_Ck @ make_T(np.eye(3), [0.0, 0.0, -cfg.retreat])
+                    try:
+                        q_next = self.camera_joints(back, q)
+                        prior = None
+                        continue
+                    except UnreachableError:
+                        pass
                 result.reason = f"iteration {k}: registration failed: {reg.reason}"
                 return result
             if np.linalg.norm(dT_B[:3, 3]) > cfg.max_translation or _angle(dT_B) > cfg.max_rotation:

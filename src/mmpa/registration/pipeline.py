@@ -32,6 +32,7 @@ target). Stages:
 
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -378,7 +379,7 @@ def register(
     try:
         T, res, last = _icp(src, tgt, T0, scales, colored, cfg, stages)
     except RuntimeError as e:  # Open3D refuses e.g. clouds without enough neighbours
-        return result(T0, False, f"fine stage failed: {e}")
+        return result(T0, False, f"fine stage failed: {_open3d_message(e)}")
     corr = np.asarray(res.correspondence_set)
     fit, rmse, n = float(res.fitness), float(res.inlier_rmse), len(corr)
     src_fine = np.asarray(src.levels[last.voxel].points)
@@ -437,6 +438,12 @@ def register(
 
 
 _DOF = ("rx", "ry", "rz", "x", "y", "z")
+
+
+def _open3d_message(e: Exception) -> str:
+    """Open3D's error text without terminal colors and C++ signatures."""
+    msg = re.sub(r"\x1b\[[0-9;]*m", "", str(e)).strip()
+    return msg.rsplit(": ", 1)[-1] if "open3d::" in msg else msg
 
 
 def _direction(v: Array) -> str:
