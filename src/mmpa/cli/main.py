@@ -165,5 +165,75 @@ def experiment(
     _show(outcome.summary, f"mmpa experiment {name} -> {out} (report.md, results.csv)")
 
 
+DbOpt = Annotated[
+    Path | None,
+    typer.Option("--db", help="Task database (default: $MMPA_TASKS_DB or ~/.local/share/mmpa)."),
+]
+
+
+def _mmpa_config(config: Path | None, seed: int, set_: list[str] | None):
+    from mmpa.config import load_config
+    from mmpa.experiments.mmpa_common import MMPAExperimentConfig
+
+    return load_config(MMPAExperimentConfig, config, [f"errors.seed={seed}", *(set_ or [])])
+
+
+@app.command()
+def teach(
+    site: Annotated[str, typer.Argument(help="Site where the task is taught (1 or 2).")],
+    task: Annotated[str, typer.Argument(help="Demonstration to teach (e.g. needle_site1).")],
+    db: DbOpt = None,
+    seed: Annotated[int, typer.Option(help="Robot instance / noise seed.")] = 0,
+    overwrite: Annotated[bool, typer.Option(help="Replace a stored task of that name.")] = False,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """One-shot teaching in the twin (paper 000 §3.1): record a task and store it."""
+    from mmpa.experiments.mmpa_twin import teach_task
+
+    try:
+        with console.status(f"teaching {task} at site {site}"):
+            summary = teach_task(
+                site, task, db=db, cfg=_mmpa_config(config, seed, set_), overwrite=overwrite
+            )
+    except MMPAError as e:
+        _fail(e)
+    _show(summary, f"taught {task}")
+
+
+@app.command("run")
+def run_cmd(
+    task: Annotated[str, typer.Argument(help="Name of a stored task.")],
+    site: Annotated[
+        str | None, typer.Option(help="Automation site (default: the task's; 2' for the bump).")
+    ] = None,
+    db: DbOpt = None,
+    seed: Annotated[int, typer.Option(help="Robot instance / noise seed (as taught).")] = 0,
+    trial: Annotated[int, typer.Option(help="Which parking draw of this seed.")] = 0,
+    tmma: Annotated[bool, typer.Option(help="Also replay the taught joints (TMMA).")] = False,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Automation stage in the twin (paper 000 §3.2): park, IPE, adapted path, execute."""
+    from mmpa.experiments.mmpa_twin import run_task
+
+    try:
+        with console.status(f"running {task}"):
+            summary = run_task(
+                task,
+                site=site,
+                db=db,
+                cfg=_mmpa_config(config, seed, set_),
+                trial=trial,
+                tmma=tmma,
+            )
+    except MMPAError as e:
+        _fail(e)
+    _show(summary, f"mmpa run {task}")
+    if not summary.get("executed"):
+        console.print(f"[yellow]not executed:[/] {summary.get('reason', '')}")
+        raise typer.Exit(1)
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()

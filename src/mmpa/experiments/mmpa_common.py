@@ -13,6 +13,8 @@ NOMINAL robot. Evaluation uses the simulator's truth:
 
 from __future__ import annotations
 
+import dataclasses
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
@@ -20,7 +22,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.errors import ConfigError
+from mmpa.errors import ConfigError, UnknownNameError
 from mmpa.geometry import (
     Array,
     T_to_vec6,
@@ -101,19 +103,46 @@ class Taught:
     key_index: int
 
 
-class TwinSite:
-    """One world for one automation site: teaches its task once, then parks and runs trials."""
+def _truth_meta(taught_T_map_Bo: Array, key_tcp: Array, key_index: int, seed: int) -> dict:
+    """Evaluation-only truth stored with a task taught in the twin (``twin_*`` meta keys; the
+    algorithms never read them)."""
+    return {
+        "twin_T_map_arm_base": json.dumps(np.asarray(taught_T_map_Bo).tolist()),
+        "twin_key_tcp_map": json.dumps(np.asarray(key_tcp).tolist()),
+        "twin_key_index": int(key_index),
+        "twin_seed": int(seed),
+    }
 
-    def __init__(self, cfg: MMPAExperimentConfig, site: str, scene: SceneConfig | None = None):
-        if site not in SITE_DEMOS:
+
+class TwinSite:
+    """One world for one automation site: teaches its task once (or takes a task taught in the
+    twin before, with its ``twin_*`` truth), then parks and runs trials."""
+
+    def __init__(
+        self,
+        cfg: MMPAExperimentConfig,
+        site: str,
+        scene: SceneConfig | None = None,
+        task: Task | None = None,
+        demo: str | None = None,
+    ):
+        if site not in TEACH_SITE and task is None:
             raise ConfigError(f"no MMPA task is defined for site {site!r}; use {list(SITE_DEMOS)}")
         self.cfg = cfg
         self.site = site
         self.scene = scene or load_scene(cfg.scene)
-        self.world = SimWorld(self.scene, errors=cfg.errors, site=TEACH_SITE[site])
+        teach_site = task.site if task is not None else TEACH_SITE.get(site, site)
+        self.world = SimWorld(self.scene, errors=cfg.errors, site=teach_site)
         self.rng = self.world.error_model.rng(f"mmpa_trials_{site}")
         self.T_map_base_estimate: Array | None = None  # localization estimate after parking
-        self.taught = self._teach(load_demonstrations()[SITE_DEMOS[site]])
+        if task is None:
+            demos = load_demonstrations()
+            name = demo or SITE_DEMOS[site]
+            if name not in demos:
+                raise UnknownNameError("demonstration", name, sorted(demos))
+            self.taught = self._teach(demos[name], teach_site)
+        else:
+            self.taught = _taught_from_task(task, load_demonstrations())
 
     def close(self) -> None:
         self.world.close()
@@ -132,9 +161,13 @@ class TwinSite:
             )
         return a
 
-    def _teach(self, demo: Demonstration) -> Taught:
+    def _teach(self, demo: Demonstration, teach_site: str) -> Taught:
+        if demo.site != teach_site:
+            raise ConfigError(
+                f"demonstration {demo.name!r} belongs to site {demo.site!r}, not {teach_site!r}"
+            )
         w = self.world
-        w.reset(site=TEACH_SITE[self.site])
+        w.reset(site=teach_site)
         rng = w.error_model.rng("teach_park_estimate")
         sx, sth = self.cfg.localization_sigma
         est = w.truth.base_pose2d() + rng.normal(0, [sx, sx, sth])
@@ -160,7 +193,10 @@ class TwinSite:
         )
         rec = holder["rec"]
         key = true_tcp_in_map(w, rec.q[rec.key_index : rec.key_index + 1])[0]
-        return Taught(task, demo, w.truth.T_map_arm_base(), key, rec.key_index)
+        T_map_Bo = w.truth.T_map_arm_base()
+        meta = _truth_meta(T_map_Bo, key, rec.key_index, self.cfg.errors.seed)
+        task = dataclasses.replace(task, meta={**task.meta, **meta})
+        return Taught(task, demo, T_map_Bo, key, rec.key_index)
 
     def park(self) -> Array:
         """Park with a Table 2 offset (planar part; z, roll, pitch come from the terrain);
@@ -227,6 +263,26 @@ class TwinSite:
         assert rec is not None
         t_key = self.taught.task.path.t[self.taught.key_index]
         return self.key_error(rec[1], rec[0], t_key)
+
+
+def _taught_from_task(task: Task, demos: dict[str, Demonstration]) -> Taught:
+    m = task.meta
+    missing = [
+        k for k in ("twin_T_map_arm_base", "twin_key_tcp_map", "twin_key_index") if k not in m
+    ]
+    if missing:
+        raise ConfigError(
+            f"task {task.name!r} was not taught in the twin (no {', '.join(missing)}): the twin "
+            "cannot evaluate it against the truth"
+        )
+    demo = demos.get(task.name) or next(iter(demos.values()))
+    return Taught(
+        task,
+        demo,
+        np.array(json.loads(str(m["twin_T_map_arm_base"]))),
+        np.array(json.loads(str(m["twin_key_tcp_map"]))),
+        int(m["twin_key_index"]),
+    )
 
 
 def pose_errors(est: Array | None, truth: Array) -> tuple[float, float]:
