@@ -105,3 +105,14 @@ def test_cli_teach_run_and_missing_task(tmp_path):
     assert r.exit_code == 2 and "needle_site2" in r.output  # lists the stored tasks
     r = cli.invoke(app, ["teach", "1", "needle_site2", "--db", db])
     assert r.exit_code == 2 and "site" in r.output
+
+
+def test_scenes_ablation_refuses_the_pure_color_plane(tmp_path):
+    """Table A.7's pattern: no pose from a plain plane, a good one from textured geometry."""
+    from mmpa.experiments.runner import run_experiment
+
+    out = run_experiment("scenes", tmp_path, trials=1, overrides=["scenes=[A.1, B.3]"])
+    rows = {r["scene"]: r for r in out.rows}
+    assert not rows["A.1"]["ipe_ok"] and "registration failed" in rows["A.1"]["reason"]
+    assert rows["B.3"]["ipe_ok"] and rows["B.3"]["E_t"] < 3e-3
+    assert (tmp_path / "report.md").read_text().count("| A.1 |") == 1

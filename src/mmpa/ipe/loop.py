@@ -81,6 +81,7 @@ class IPEConfig(BaseModel):
     alpha: tuple[float, float, float, float, float, float] = DEFAULT_ALPHA  # m x3, rad x3
     beta: int = Field(5, ge=1)  # the paper uses 10 at Site 2'
     frames: int = Field(4, ge=1)  # captures averaged per view (paper: 1)
+    use_color: bool = True  # False: drop colors, point-to-plane ICP (paper Table A.7 A.0/B.0)
     global_each_iteration: bool = False  # paper: True (FGR + colored ICP every time)
     min_depth: float = Field(0.2, gt=0)  # m, crop of the captured cloud
     max_depth: float = Field(1.5, gt=0)
@@ -199,6 +200,8 @@ class IPE:
         if q_next.shape != (6,) or not np.all(np.isfinite(q_next)):
             raise InvalidInputError(f"q_sample must be 6 finite joint angles, got {q_next}")
         t0 = time.perf_counter()
+        if not cfg.use_color and isinstance(taught, PointCloud) and taught.colors is not None:
+            taught = _colorless(taught)
         source = taught if isinstance(taught, Prepared) else prepared(taught, cfg.registration)
         result = IPEResult(ok=False, dT_B=None, seconds_prepare=time.perf_counter() - t0)
         lo, hi = self.robot.arm.q_limits
@@ -220,6 +223,8 @@ class IPE:
             q = arm.joint_positions()
             t2 = time.perf_counter()
             cloud = capture_cloud(camera, cfg.frames, cfg.min_depth, cfg.max_depth)
+            if not cfg.use_color:
+                cloud = PointCloud(cloud.points, None, cloud.frame)
             t3 = time.perf_counter()
             T_Bk_Ck = self.T_arm_base_camera(q)
             # after the first view the camera is back near its taught pose: the previous
@@ -293,6 +298,20 @@ class IPE:
         )
         result.dT_B = None
         return result
+
+
+_COLORLESS: list[tuple[PointCloud, PointCloud]] = []
+
+
+def _colorless(cloud: PointCloud) -> PointCloud:
+    """The same cloud without colors (one object per input, so preparation stays cached)."""
+    for c, g in _COLORLESS:
+        if c is cloud:
+            return g
+    g = PointCloud(cloud.points, None, cloud.frame)
+    _COLORLESS.append((cloud, g))
+    del _COLORLESS[:-4]
+    return g
 
 
 def _angle(T: Array) -> float:

@@ -247,14 +247,17 @@ class _Builder:
             pos=_f(*bench.center, 0),
             quat=_yaw_quat(yaw),
         )
-        wood = self.texture(f"wood_{bench.name}", textures.wood(self.rng))
+        if bench.top_color is None:
+            top_look = {"material": self.texture(f"wood_{bench.name}", textures.wood(self.rng))}
+        else:
+            top_look = {"rgba": self.color(bench.top_color)}
         top = 0.03
         ET.SubElement(
             body,
             "geom",
             name=f"desk_{bench.name}_top",
             type="box",
-            material=wood,
+            **top_look,
             pos=_f(0, 0, h - top / 2),
             size=_f(lx / 2, ly / 2, top / 2),
             group="0",
@@ -299,6 +302,11 @@ class _Builder:
             lx, ly, lz = item.size or (1.1, 0.03, 0.45)
             mat = self.texture(f"{name}_poster", textures.backboard(self.rng))
             geom("board", (0, 0, lz / 2), type="box", size=_f(lx / 2, ly / 2, lz / 2), material=mat)
+        elif k == "poster":
+            # a colorful print lying on the desk (paper 000 Fig. A.1: textures on thin paper)
+            lx, ly = (item.size or (0.2, 0.15))[:2]
+            mat = self.texture(f"{name}_poster", textures.backboard(self.rng))
+            geom("sheet", (0, 0, 0.0005), type="box", size=_f(lx / 2, ly / 2, 0.0005), material=mat)
         elif k == "dot":
             # paper 000 Fig. 6c/10: the red dot the needle points at (printed on thin paper)
             r = (item.size or (0.004,))[0]

@@ -129,6 +129,7 @@ ItemKind = Literal[
     "test_tube_stand",
     "box",
     "dot",
+    "poster",
 ]
 
 
@@ -152,6 +153,7 @@ class Workbench(_Model):
     center: Vec2
     yaw_deg: float = 0.0
     size: Vec3 = (1.2, 0.6, 0.72)  # length, depth, height
+    top_color: Vec3 | None = None  # RGB in [0, 1] for a plain top; None: wood texture
     items: list[DeskItem] = Field(default_factory=list)
 
     @model_validator(mode="after")
