@@ -172,6 +172,20 @@ def test_site2_prime_reset_is_settled(world):
     assert math.degrees(_rot_angle(after[:3, :3], before[:3, :3])) < 0.1
 
 
+@pytest.mark.parametrize(
+    "offset", [(0.139, -0.156, -10.7), (0.183, 0.141, 25.9), (0.115, -0.05, 7.0)]
+)
+def test_parked_on_the_bump_the_base_stays_where_placed(world, offset):
+    """Placed with its wheels and caster on the bump, the base rests there (no drop, no slide
+    off the ridge): the parking offset is the one asked for, the tilt comes from the bump."""
+    site = world.scene.site("2'")
+    pose = site.pose2d + np.array([offset[0], offset[1], np.deg2rad(offset[2])])
+    world.reset(site="2'", pose2d=pose)
+    got = world.truth.base_pose2d()
+    assert np.hypot(*(got[:2] - pose[:2])) < 0.006
+    assert abs(math.degrees(got[2] - pose[2])) < 1.5
+
+
 def _drive_logging(world: SimWorld, v: float, duration: float) -> tuple[float, float, float]:
     """Drive straight; return max |roll|, max |pitch| (deg) and max base_link z (m)."""
     world.base.set_velocity(v, 0.0)

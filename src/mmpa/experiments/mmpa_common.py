@@ -29,6 +29,7 @@ from mmpa.geometry import (
     inv,
     rotation_error,
     se2_compose,
+    se2_inv,
     se2_to_T,
     translation_error,
 )
@@ -208,7 +209,11 @@ class TwinSite:
             off = w.error_model.sample_parking_offset(self.site, self.rng)
             if abs(off[5]) <= np.deg2rad(self.cfg.max_yaw_offset_deg):
                 break
-        pose = se2_compose(site.pose2d, np.array([off[0], off[1], off[5]]))
+        # Table 2 is the relative pose of the ARM BASE, dT_B* = inv(T_map_Bk) T_map_Bo: put the
+        # arm base at Bo (+) inv(offset) in the plane, the base_link where that puts it
+        arm = np.array([*w.nominal.T_base_link_arm_base[:2, 3], 0.0])
+        Bk = se2_compose(se2_compose(site.pose2d, arm), se2_inv(np.array([off[0], off[1], off[5]])))
+        pose = se2_compose(Bk, se2_inv(arm))
         w.reset(site=self.site, pose2d=pose)
         self.parked_pose2d = pose
         sx, sth = self.cfg.localization_sigma

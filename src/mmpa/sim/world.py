@@ -18,7 +18,7 @@ import numpy as np
 from ruckig import InputParameter, Result, Ruckig, Trajectory
 
 from mmpa.errors import InvalidInputError, SimulationError, UnreachableError
-from mmpa.geometry import Array, T_to_se2, make_T
+from mmpa.geometry import Array, T_to_se2, make_T, rpy_to_R
 from mmpa.robot.description import RobotDescription, default_robot
 from mmpa.robot.interfaces import Odometry
 from mmpa.sim.error_model import ErrorModel, ErrorModelConfig
@@ -194,14 +194,11 @@ class SimWorld:
         q = np.asarray(self.nominal.arm.home if q_arm is None else q_arm, float)
         d = self.data
         mujoco.mj_resetData(self.model, d)
-        z0 = 0.07 if self.speed_bump_enabled else 0.001
+        z0, roll, pitch = self._bump_pose(pose2d) if self.speed_bump_enabled else (0.001, 0, 0)
         d.qpos[self._base_qadr : self._base_qadr + 3] = (pose2d[0], pose2d[1], z0)
-        d.qpos[self._base_qadr + 3 : self._base_qadr + 7] = (
-            np.cos(pose2d[2] / 2),
-            0.0,
-            0.0,
-            np.sin(pose2d[2] / 2),
-        )
+        quat = np.empty(4)
+        mujoco.mju_mat2Quat(quat, rpy_to_R(roll, pitch, pose2d[2]).ravel())
+        d.qpos[self._base_qadr + 3 : self._base_qadr + 7] = quat
         d.qpos[self._arm_qadr] = q
         d.ctrl[self._arm_act] = q
         d.ctrl[self._grip_act] = 0.0
@@ -221,6 +218,31 @@ class SimWorld:
                 self.step(0.1)
         self._odometry.reset()
         self._odometry.update(self.truth.base_pose2d(), float(d.time))
+
+    def _bump_pose(self, pose2d: Array) -> tuple[float, float, float]:
+        """``(z, roll, pitch)`` that put both wheels and the caster on the ground/speed bump
+        at ``pose2d`` (released level from above, the base would drop, tip and slide off)."""
+        sb = self.scene.speed_bump
+        b = self.true_robot.base
+        if sb is None:
+            return 0.001, 0.0, 0.0
+        c, s_ = np.cos(pose2d[2]), np.sin(pose2d[2])
+        yaw = np.deg2rad(sb.yaw_deg)
+
+        def height(px: float, py: float) -> float:
+            x = pose2d[0] + c * px - s_ * py - sb.center[0]
+            y = pose2d[1] + s_ * px + c * py - sb.center[1]
+            u = np.cos(yaw) * x + np.sin(yaw) * y  # along the ridge
+            v = -np.sin(yaw) * x + np.cos(yaw) * y  # across it
+            if abs(u) <= sb.length / 2 and abs(v) <= sb.width / 2:
+                return sb.height * (1.0 - abs(v) / (sb.width / 2))
+            return 0.0
+
+        hl, hr = height(0.0, b.track_width / 2), height(0.0, -b.track_width / 2)
+        hc = height(b.caster_x, 0.0)
+        roll = float(np.arcsin(np.clip((hl - hr) / b.track_width, -0.5, 0.5)))
+        pitch = float(np.arcsin(np.clip((hc - (hl + hr) / 2) / -b.caster_x, -0.5, 0.5)))
+        return (hl + hr) / 2 + 0.002, roll, pitch
 
     # --- physics --------------------------------------------------------------------------
     def step(self, duration: float) -> None:
