@@ -290,6 +290,7 @@ class FiducialResult:
     t_hit: float = math.nan
     z: Array | None = None
     estimate_before: Array | None = None  # believed base position at t_hit, before the update
+    q_hit: Array | None = None  # joint positions latched at the trigger
     n_points: int = 0
     n_rounds: int = 0
     spurious: int = 0  # triggers rejected by the gate (a neighbouring tube)
@@ -443,6 +444,7 @@ def run_pass(
                 res.search_time = t_hit - t_start
                 res.z = z
                 res.estimate_before = est
+                res.q_hit = q_hit
                 res.position_error = float(np.linalg.norm(z - strategy.dead_reckoned(t_hit)))
                 strategy.observe(t_hit, z)
         results.append(res)
