@@ -187,6 +187,14 @@ class Stochastic(SearchStrategy):
             self.name = "stochastic-6dof"
         self._queue = np.zeros((0, self.dims))
         self.last_samples: Array | None = None
+        self.tilt_mean = np.zeros(2)  # believed [roll, pitch] correction (rad)
+        self.tilt_sd = self.tilt_sigma
+
+    def observe_tilt(self, roll: float, pitch: float) -> None:
+        """The beam tilt (arm-base frame) under which a fiducial was intercepted: the base
+        tilt is constant over a pass, so later searches centre their tilt hypotheses on it."""
+        self.tilt_mean = np.array([roll, pitch])
+        self.tilt_sd = min(self.tilt_sigma, self.tilt_gamma)
 
     def begin(self, t: float) -> None:
         assert self.kf is not None
@@ -196,20 +204,19 @@ class Stochastic(SearchStrategy):
         cfg = self.kf_cfg
         if self.dims == 2:
             g = grid_samples(mean, cov, self.rng, cfg.gamma, cfg.n_draws, cfg.mass)
-            cells = g.points - mean
+            off = -(g.points - mean)  # a base offset h makes the fiducial appear at p_i - h
         else:  # joint position x tilt grid, scaled so that one grid step is gamma / gamma_a
-            scale = np.array([1.0, 1.0, cfg.gamma / self.tilt_gamma, cfg.gamma / self.tilt_gamma])
-            m4 = np.concatenate([mean, [0.0, 0.0]]) * scale
+            k = cfg.gamma / self.tilt_gamma
+            scale = np.array([1.0, 1.0, k, k])
+            m4 = np.concatenate([mean, self.tilt_mean])
             c4 = np.zeros((4, 4))
             c4[:2, :2] = cov
-            c4[2, 2] = c4[3, 3] = self.tilt_sigma**2
-            c4 = c4 * np.outer(scale, scale)
-            g = grid_samples(m4, c4, self.rng, cfg.gamma, cfg.n_draws, cfg.mass)
-            cells = g.points / scale - np.concatenate([mean, [0.0, 0.0]])
-        # a base offset h makes the fiducial appear at p_i - h: the tool aims there
-        off = -cells
-        if self.dims == 4:
-            off[:, 2:] = cells[:, 2:]  # a tilt error is compensated by the same tilt
+            c4[2, 2] = c4[3, 3] = self.tilt_sd**2
+            g = grid_samples(
+                m4 * scale, c4 * np.outer(scale, scale), self.rng, cfg.gamma, cfg.n_draws, cfg.mass
+            )
+            cells = g.points / scale
+            off = np.concatenate([-(cells[:, :2] - mean), cells[:, 2:]], axis=1)
         self._queue = off
         self.last_samples = off
 
@@ -447,6 +454,11 @@ def run_pass(
                 res.q_hit = q_hit
                 res.position_error = float(np.linalg.norm(z - strategy.dead_reckoned(t_hit)))
                 strategy.observe(t_hit, z)
+                if isinstance(strategy, Stochastic) and strategy.dims == 4:
+                    d = ik.beam(q_hit)[1]  # d = Rx(roll) Ry(pitch) (0, 0, -1)
+                    strategy.observe_tilt(
+                        math.atan2(d[1], -d[2]), math.asin(float(np.clip(-d[0], -1, 1)))
+                    )
         results.append(res)
     robot.stop_base()
     return PassResult(strategy.name, float(speed), float(heading), results, robot.now() - t0)
