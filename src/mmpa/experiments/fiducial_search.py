@@ -18,6 +18,7 @@ constant base tilt (uneven floor) and compares the 2D search with the tilted (6-
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -178,11 +179,17 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     rows: list[dict[str, Any]] = []
     with SimWorld(site="0") as world:
         for k, (study, s, v, r, noise) in enumerate(jobs):
+            t0 = time.perf_counter()
             rows.append(_pass(world, cfg, s, v, r, noise, study))
+            rows[-1]["wall_s"] = time.perf_counter() - t0
             ctx.progress(f"{study} {s} {v:g} cm/s", (k + 1) / len(jobs))
 
     main = [r for r in rows if r["study"] == "main"]
     summary: dict[str, Any] = {"passes": len(rows), "repetitions": reps}
+    summary["wall_s_by_strategy"] = {
+        s: float(sum(r["wall_s"] for r in rows if r["strategy"] == s))
+        for s in dict.fromkeys(r["strategy"] for r in rows)
+    }
     overall = []
     for s in cfg.strategies:
         sub = [r for r in main if r["strategy"] == s]

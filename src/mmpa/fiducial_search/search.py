@@ -217,6 +217,14 @@ class Stochastic(SearchStrategy):
             )
             cells = g.points / scale
             off = np.concatenate([-(cells[:, :2] - mean), cells[:, 2:]], axis=1)
+            # first the most probable positions at the believed tilt: a beam within a few
+            # degrees of the tube axis still gets through, and the 2D cells are 14 mm apart
+            g2 = grid_samples(mean, cov, self.rng, cfg.gamma, cfg.n_draws, cfg.mass)
+            n2 = min(len(g2.points), cfg.points_per_round)
+            flat = np.concatenate(
+                [-(g2.points[:n2] - mean), np.tile(self.tilt_mean, (n2, 1))], axis=1
+            )
+            off = np.concatenate([flat, off])
         self._queue = off
         self.last_samples = off
 
