@@ -259,3 +259,21 @@ def test_planning_standing_base_and_unreachable_points() -> None:
     assert len(plan.q) == 2
     with pytest.raises(InvalidInputError):
         iterative_plan(np.zeros((0, 2)), np.zeros(2), q0, ik, LIM)
+
+
+def test_stochastic_config_rejects_singular_observation_noise() -> None:
+    from pydantic import ValidationError
+
+    from mmpa.fiducial_search import StochasticConfig
+
+    with pytest.raises(ValidationError, match="Sigma_vv"):
+        StochasticConfig(sigma_vv=(0.0, 1e-4))
+    with pytest.raises(ValidationError, match="Sigma_ww"):
+        StochasticConfig(sigma_ww=(1e-4, -1.0, 0.0, 0.0))
+    # a zero process noise is allowed: the search then collapses onto few cells
+    kf = ConstantVelocityKF.from_config(
+        [0.0, 0.0], [0.02, 0.0], StochasticConfig(sigma_ww=(0, 0, 0, 0), initial_position_sigma=0)
+    )
+    mean, cov = kf.position(10.0)
+    g = grid_samples(mean, cov, np.random.default_rng(0))
+    np.testing.assert_allclose(g.points[0], [0.2, 0.0])

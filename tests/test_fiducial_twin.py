@@ -120,3 +120,13 @@ def test_kinematic_mode_keeps_truth_consistent(world) -> None:
     assert world.time == 5.0
     with pytest.raises(InvalidInputError):
         world.set_kinematic_state(np.array([np.nan, 0, 0]), q)
+
+
+def test_twin_refuses_joint_paths_outside_limits(world) -> None:
+    _, start, _, _ = _setup(world)
+    rob = KinematicMovingBase(world, start, MovingBaseNoise(), np.random.default_rng(5))
+    q = rob.joint_positions()
+    bad = np.vstack([q, q + np.array([0.0, 0.0, 4.0, 0.0, 0.0, 0.0])])  # joint 3 beyond pi
+    with pytest.raises(InvalidInputError, match="limits"):
+        rob.execute(np.array([0.0, 0.1]), bad)
+    np.testing.assert_array_equal(rob.joint_positions(), q)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from mmpa.errors import InvalidInputError
 from mmpa.geometry import Array
@@ -47,6 +47,23 @@ class StochasticConfig(BaseModel):
     n_draws: int = Field(4000, ge=1)  # samples of eq. 6 before discretization
     mass: float = Field(0.999, gt=0, le=1)  # keep the most probable cells up to this mass
     points_per_round: int = Field(20, ge=1)  # n_s planned at once (Algorithm 2 batch)
+
+    @field_validator("sigma_ww")
+    @classmethod
+    def _ww(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(np.isfinite(x) and x >= 0 for x in v):
+            raise ValueError(f"Sigma_ww diagonal must be finite and >= 0, got {v}")
+        return v
+
+    @field_validator("sigma_vv")
+    @classmethod
+    def _vv(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(np.isfinite(x) and x > 0 for x in v):
+            raise ValueError(
+                f"Sigma_vv diagonal must be positive (a singular observation noise makes the "
+                f"innovation covariance singular), got {v}"
+            )
+        return v
 
 
 def transition(dt: float) -> Array:
