@@ -127,6 +127,10 @@ class SearchStrategy(ABC):
         self.kf.predict(t)
         self.kf.update(z)
 
+    def approach_offset(self) -> Array:
+        """Offset (dims,) of the first move, to the expected fiducial position."""
+        return np.zeros(self.dims)
+
     @abstractmethod
     def begin(self, t: float) -> None:
         """A new fiducial's search starts at ``t``."""
@@ -189,6 +193,12 @@ class Stochastic(SearchStrategy):
         self.last_samples: Array | None = None
         self.tilt_mean = np.zeros(2)  # believed [roll, pitch] correction (rad)
         self.tilt_sd = self.tilt_sigma
+
+    def approach_offset(self) -> Array:
+        out = np.zeros(self.dims)
+        if self.dims == 4:
+            out[2:] = self.tilt_mean
+        return out
 
     def observe_tilt(self, roll: float, pitch: float) -> None:
         """The beam tilt (arm-base frame) under which a fiducial was intercepted: the base
@@ -421,7 +431,7 @@ def run_pass(
         first = True
         while not hit and robot.now() < t_end:
             offs = (
-                np.zeros((1, strategy.dims))
+                strategy.approach_offset()[None]
                 if first
                 else strategy.next_offsets(cfg.points_per_round)
             )
