@@ -244,6 +244,39 @@ class SimWorld:
         pitch = float(np.arcsin(np.clip((hc - (hl + hr) / 2) / -b.caster_x, -0.5, 0.5)))
         return (hl + hr) / 2 + 0.002, roll, pitch
 
+    def set_kinematic_state(
+        self,
+        pose2d: Array,
+        q_arm: Array,
+        roll: float = 0.0,
+        pitch: float = 0.0,
+        time: float | None = None,
+    ) -> None:
+        """Kinematic mode: place the base at ``pose2d`` = ``[x, y, yaw]`` (tilted by ``roll``,
+        ``pitch`` rad, at its current height) and the arm at ``q_arm`` without running the
+        dynamics, and bring body poses, sensors and ground truth level with it
+        (``mj_kinematics``, a few microseconds). For fast twins whose motion is prescribed
+        (e.g. a base driving a known noisy trajectory); odometry is not updated."""
+        pose2d = np.asarray(pose2d, float)
+        q = np.asarray(q_arm, float)
+        if pose2d.shape != (3,) or q.shape != (6,):
+            raise InvalidInputError(
+                f"need pose2d (3,) and q_arm (6,), got {pose2d.shape}, {q.shape}"
+            )
+        if not (np.all(np.isfinite(pose2d)) and np.all(np.isfinite(q))):
+            raise InvalidInputError("kinematic state must be finite")
+        d = self.data
+        a = self._base_qadr
+        d.qpos[a : a + 2] = pose2d[:2]
+        quat = np.empty(4)
+        mujoco.mju_euler2Quat(quat, np.array([roll, pitch, pose2d[2]]), "XYZ")
+        d.qpos[a + 3 : a + 7] = quat
+        d.qpos[self._arm_qadr] = q
+        d.ctrl[self._arm_act] = q
+        if time is not None:
+            d.time = float(time)
+        mujoco.mj_kinematics(self.model, d)
+
     # --- physics --------------------------------------------------------------------------
     def step(self, duration: float) -> None:
         """Advance the physics by ``duration`` s, running the low-level controllers."""
