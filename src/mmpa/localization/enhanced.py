@@ -1,0 +1,276 @@
+"""Reflector-enhanced AMCL: paper 001 Algorithm 1, eq. 3-8, on top of :class:`AMCL`.
+
+Per scan (Algorithm 1):
+
+1. ``R, M_bar = LaserReflectorIdentification(z_t, u_t, M)``: detect reflectors, identify them by
+   triangle matching, trilaterate ``mu_G`` (eq. 1-2) -> :class:`ReflectorObserver`.
+2. Fewer than three identified (``M_bar`` empty): plain AMCL (lines 4-10).
+3. Otherwise (lines 12-26): motion model; laser weight ``omega_t = omega_{t-1} p(z_t | x_t)``
+   (eq. 5, normalized); position weight ``d`` (eq. 3); orientation weight ``s`` (eq. 4);
+   fused ``omega_new = alpha s omega + beta d`` (eq. 6, alpha = 154, beta = 1), normalized;
+   resampling on ``omega_new`` (``ParticleGeneration``); then each particle is replaced, with
+   probability ``d`` if ``d > 0.01`` (eq. 8), by a new particle ``lambda Q + mu_G`` (eq. 7).
+
+Interpretations (the paper leaves them open):
+
+- eq. 3 uses ``(2 pi)^{-3/2} exp(-1/2 e^T e)`` with ``e = x - mu_G`` in m and rad (identity
+  covariance). ``position_metric="trilateration"`` (the default, our improvement) whitens ``e``
+  with the trilateration covariance (plus a floor), so the weight reflects how well ``mu_G``
+  is actually known; the normalizer stays ``(2 pi)^{-3/2}`` so eq. 8's 0.01 threshold keeps its
+  meaning (``e^T Sigma^-1 e < 3.7``).
+- eq. 4 averages, over the identified reflectors, a Gaussian of the difference between the
+  observed bearing ``phi_i`` and the bearing ``mu`` the particle predicts for that landmark,
+  with ``sigma = bearing_sigma``.
+- eq. 7 with ``lambda = 1`` (paper) spreads new particles by 1 m / 1 rad; the default
+  ``injection="trilateration"`` draws them from ``N(mu_G, Sigma)`` instead.
+- ``fusion="product"`` (default, our improvement): eq. 6's sum lets the ``alpha s omega`` term
+  outweigh ``beta d`` by two orders of magnitude, so the trilateration barely sharpens the
+  cloud; the product ``s omega d`` is the Bayes posterior of the three independent cues.
+  ``fusion="paper"`` is eq. 6 as printed.
+- ``update_when_stationary``: reflector fixes also update the filter while the base stands
+  still (Nav2 waits for ``update_min_d``); the motion model then adds no noise, and the
+  injected particles keep the cloud from collapsing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from mmpa.geometry import Array
+from mmpa.localization.amcl import AMCL, AMCLConfig, PoseEstimate, _wrap
+from mmpa.localization.maps import OccupancyGrid
+from mmpa.localization.reflectors import (
+    DetectionConfig,
+    IdentifyConfig,
+    ReflectorDetections,
+    TriangleLibrary,
+    detect_reflectors,
+    identify_reflectors,
+)
+from mmpa.localization.trilateration import TrilaterationResult, trilaterate
+from mmpa.robot.interfaces import LaserScan
+
+__all__ = [
+    "EnhancedAMCL",
+    "EnhancedConfig",
+    "ObserverConfig",
+    "ReflectorFix",
+    "ReflectorObserver",
+    "orientation_weight",
+    "position_weight",
+]
+
+_EQ3_NORM = (2 * np.pi) ** -1.5
+
+
+class ObserverConfig(BaseModel):
+    """Detection, identification and trilateration settings."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    detection: DetectionConfig = DetectionConfig()
+    identify: IdentifyConfig = IdentifyConfig()
+    range_sigma_beam: float = Field(0.015, gt=0)  # m, lidar range noise per beam
+    range_sigma_floor: float = Field(0.004, ge=0)  # m, map error + fit bias
+    bearing_sigma_floor: float = Field(0.002, ge=0)  # rad
+    outlier_sigmas: float = Field(3.5, gt=0)  # drop reflectors with larger normalized residual
+    min_reflectors: int = Field(3, ge=3)
+
+
+@dataclass(frozen=True)
+class ReflectorFix:
+    """Identified reflectors (in ``base_link``) and the trilateration ``mu_G`` (eq. 1-2)."""
+
+    ids: np.ndarray  # (n,) landmark ids
+    ranges: Array  # (n,) m from base_link
+    bearings: Array  # (n,) rad in base_link
+    trilateration: TrilaterationResult
+    detected: int  # reflectors detected (identified or not)
+
+    @property
+    def pose(self) -> Array:
+        return self.trilateration.pose
+
+
+class ReflectorObserver:
+    """``LaserReflectorIdentification`` of Algorithm 1 plus eq. 1-2 with outlier rejection."""
+
+    def __init__(
+        self, landmarks: Array, laser_pose: Array, cfg: ObserverConfig | None = None
+    ) -> None:
+        self.cfg = cfg or ObserverConfig()
+        self.landmarks = np.asarray(landmarks, float).reshape(-1, 2)
+        self.library = TriangleLibrary(self.landmarks)
+        self.laser_pose = np.asarray(laser_pose, float).reshape(3)
+        self.last_detections: ReflectorDetections = ReflectorDetections.empty()
+        self.last_status = "none"
+
+    def observe(self, scan: LaserScan) -> ReflectorFix | None:
+        """The fix of this scan, or None if fewer than ``min_reflectors`` are identified."""
+        c = self.cfg
+        det = detect_reflectors(scan, c.detection).transformed(self.laser_pose)
+        self.last_detections = det
+        if len(det) < c.min_reflectors:
+            self.last_status = "too_few"
+            return None
+        ident = identify_reflectors(det.points, self.library, c.identify)
+        self.last_status = ident.status
+        keep = ident.ids >= 0
+        while keep.sum() >= c.min_reflectors:
+            k = np.flatnonzero(keep)
+            beams = np.maximum(det.beams[k], 1)
+            sr = c.range_sigma_floor + c.range_sigma_beam / np.sqrt(beams)
+            sb = c.bearing_sigma_floor + (c.detection.radius + 0.01) / (
+                det.ranges[k] * np.sqrt(beams)
+            )
+            try:
+                tri = trilaterate(
+                    self.landmarks[ident.ids[k]], det.ranges[k], det.bearings[k], sr, sb
+                )
+            except ValueError:
+                self.last_status = "degenerate"
+                return None
+            d = self.landmarks[ident.ids[k]] - tri.pose[:2]
+            res_r = (np.linalg.norm(d, axis=1) - det.ranges[k]) / sr
+            res_b = _wrap(np.arctan2(d[:, 1], d[:, 0]) - tri.pose[2] - det.bearings[k]) / sb
+            worst = int(np.argmax(np.maximum(np.abs(res_r), np.abs(res_b))))
+            if max(abs(res_r[worst]), abs(res_b[worst])) <= c.outlier_sigmas:
+                return ReflectorFix(ident.ids[k], det.ranges[k], det.bearings[k], tri, len(det))
+            keep[k[worst]] = False
+        self.last_status = "too_few_consistent"
+        return None
+
+
+class EnhancedConfig(BaseModel):
+    """Algorithm 1 coefficients. Paper values: ``alpha=154``, ``beta=1``, ``lambda=1``,
+    identity covariance in eq. 3 (``EnhancedConfig.paper()``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    amcl: AMCLConfig = AMCLConfig()
+    observer: ObserverConfig = ObserverConfig()
+    alpha: float = Field(154.0, ge=0)  # eq. 6
+    beta: float = Field(1.0, ge=0)  # eq. 6
+    bearing_sigma: float = Field(0.01, gt=0)  # rad, eq. 4 (sigma of the observation angle)
+    position_metric: Literal["identity", "trilateration"] = "trilateration"  # eq. 3
+    position_cov_floor: tuple[float, float, float] = (0.002**2, 0.002**2, 0.001**2)
+    injection: Literal["paper", "trilateration"] = "trilateration"  # eq. 7
+    injection_lambda: float = Field(1.0, gt=0)  # eq. 7 (paper: 1)
+    injection_threshold: float = Field(0.01, ge=0)  # eq. 8
+    update_when_stationary: bool = True
+    fusion: Literal["paper", "product"] = "product"  # eq. 6 as printed, or Bayes product
+    position_weight_floor: float = Field(1e-4, ge=0)  # product fusion: keeps far particles alive
+
+    @classmethod
+    def paper(cls) -> EnhancedConfig:
+        """Algorithm 1 exactly as printed (identity eq. 3, lambda = 1, Nav2 updates only)."""
+        return cls(
+            position_metric="identity",
+            injection="paper",
+            update_when_stationary=False,
+            fusion="paper",
+        )
+
+
+def position_weight(particles: Array, mu: Array, cov: Array | None = None) -> Array:
+    """Eq. 3: ``d = (2 pi)^{-3/2} exp(-1/2 e^T S^-1 e)``, ``e = x - mu_G`` (heading wrapped);
+    ``S = I`` as printed unless ``cov`` (3, 3) is given. Returns (N,)."""
+    e = particles - mu
+    e[:, 2] = _wrap(e[:, 2])
+    if cov is None:
+        m2 = np.einsum("ij,ij->i", e, e)
+    else:
+        m2 = np.einsum("ij,jk,ik->i", e, np.linalg.inv(cov), e)
+    return _EQ3_NORM * np.exp(-0.5 * m2)
+
+
+def orientation_weight(particles: Array, landmarks: Array, bearings: Array, sigma: float) -> Array:
+    """Eq. 4: ``s = (1/n) sum_i N(phi_i; mu_i, sigma)`` with ``mu_i`` the bearing of landmark
+    ``i`` predicted from each particle (``base_link`` frame). Returns (N,)."""
+    dx = landmarks[None, :, 0] - particles[:, 0:1]
+    dy = landmarks[None, :, 1] - particles[:, 1:2]
+    mu = np.arctan2(dy, dx) - particles[:, 2:3]
+    err = _wrap(bearings[None, :] - mu)
+    g = np.exp(-(err**2) / (2 * sigma**2)) / (sigma * np.sqrt(2 * np.pi))
+    return g.mean(axis=1)
+
+
+class EnhancedAMCL(AMCL):
+    """AMCL with Algorithm 1 (see the module docstring)."""
+
+    name = "enhanced"
+
+    def __init__(
+        self,
+        grid: OccupancyGrid,
+        laser_pose: Array,
+        cfg: EnhancedConfig | None = None,
+        rng: np.random.Generator | None = None,
+        landmarks: Array | None = None,
+    ) -> None:
+        self.ecfg = cfg or EnhancedConfig()
+        super().__init__(grid, laser_pose, self.ecfg.amcl, rng)
+        lm = grid.reflectors if landmarks is None else landmarks
+        obs_cfg = self.ecfg.observer
+        if grid.reflector_radius > 0 and landmarks is None:
+            det = obs_cfg.detection.model_copy(update={"radius": grid.reflector_radius})
+            obs_cfg = obs_cfg.model_copy(update={"detection": det})
+        self.observer = ReflectorObserver(lm, laser_pose, obs_cfg)
+        self.last_fix: ReflectorFix | None = None
+
+    def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
+        fix = self.observer.observe(scan)
+        self.last_fix = fix
+        if fix is None:  # Algorithm 1 lines 4-10: original AMCL
+            return super().update(odom_pose, scan, force)
+        odom_pose = np.asarray(odom_pose, float).reshape(3)
+        if not (force or self.ecfg.update_when_stationary or self._should_update(odom_pose)):
+            return self._current(updated=False)
+        e = self.ecfg
+        self.predict(odom_pose)  # line 12
+        p = self.measurement_weights(self.particles, scan)
+        omega = self.weights * p  # eq. 5
+        omega = omega / max(float(omega.sum()), 1e-300)
+        self._apply_weights(p)  # keeps w_slow / w_fast bookkeeping of AMCL
+        mu = fix.pose
+        cov = None
+        if e.position_metric == "trilateration":
+            cov = fix.trilateration.cov + np.diag(e.position_cov_floor)
+        d = position_weight(self.particles, mu, cov)  # eq. 3 (line 14)
+        s = orientation_weight(
+            self.particles, self.observer.landmarks[fix.ids], fix.bearings, e.bearing_sigma
+        )  # eq. 4 (line 15)
+        if e.fusion == "paper":
+            w_new = e.alpha * s * omega + e.beta * d  # eq. 6 (line 16)
+        else:  # improvement: all three likelihoods multiplied (d floored for robustness)
+            w_new = s * omega * (d + e.position_weight_floor * _EQ3_NORM)
+        total = float(w_new.sum())
+        if not np.isfinite(total) or total <= 0:
+            w_new = np.full(len(w_new), 1.0 / len(w_new))
+        else:
+            w_new = w_new / total  # line 19
+        self.weights = w_new
+        self.resample(w_new)  # ParticleGeneration(omega_new)
+        # lines 20-26: inject new particles around mu_G with probability d (eq. 8)
+        d_new = position_weight(self.particles, mu, cov)
+        prob = np.where(d_new > e.injection_threshold, d_new, 0.0)
+        inject = self.rng.uniform(size=len(prob)) <= prob
+        k = int(inject.sum())
+        if k:
+            q = self.rng.standard_normal((k, 3))
+            if e.injection == "paper":
+                new = e.injection_lambda * q + mu  # eq. 7
+            else:
+                Lc = np.linalg.cholesky(cov if cov is not None else np.eye(3))
+                new = q @ Lc.T + mu
+            new[:, 2] = _wrap(new[:, 2])
+            self.particles[inject] = new
+        self._odom_last_update = odom_pose.copy()
+        self._force_update = False
+        self._estimate = None
+        est = self._current(updated=True)
+        return PoseEstimate(est.pose, est.cov, est.n_particles, True, "enhanced")
