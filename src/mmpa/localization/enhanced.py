@@ -27,6 +27,10 @@ Interpretations (the paper leaves them open):
   outweigh ``beta d`` by two orders of magnitude, so the trilateration barely sharpens the
   cloud; the product ``s omega d`` is the Bayes posterior of the three independent cues.
   ``fusion="paper"`` is eq. 6 as printed.
+- eq. 8's probability always uses eq. 3 as printed (identity metric), so particles up to
+  ~1.9 m from ``mu_G`` can trigger an injection even with the sharper eq. 3 weight.
+- kidnapping (improvement): ``kidnap_fixes`` consecutive fixes farther than
+  ``kidnap_distance`` from every particle re-seed the cloud at ``N(mu_G, Sigma)``.
 - ``update_when_stationary``: reflector fixes also update the filter while the base stands
   still (Nav2 waits for ``update_min_d``); the motion model then adds no noise, and the
   injected particles keep the cloud from collapsing.
@@ -164,6 +168,8 @@ class EnhancedConfig(BaseModel):
     update_when_stationary: bool = True
     fusion: Literal["paper", "product"] = "product"  # eq. 6 as printed, or Bayes product
     position_weight_floor: float = Field(1e-4, ge=0)  # product fusion: keeps far particles alive
+    kidnap_distance: float = Field(0.5, gt=0)  # m, fix farther than this from every particle
+    kidnap_fixes: int = Field(3, ge=0)  # consecutive such fixes re-seed the cloud; 0 = off
 
     @classmethod
     def paper(cls) -> EnhancedConfig:
@@ -173,6 +179,7 @@ class EnhancedConfig(BaseModel):
             injection="paper",
             update_when_stationary=False,
             fusion="paper",
+            kidnap_fixes=0,
         )
 
 
@@ -221,6 +228,24 @@ class EnhancedAMCL(AMCL):
             obs_cfg = obs_cfg.model_copy(update={"detection": det})
         self.observer = ReflectorObserver(lm, laser_pose, obs_cfg)
         self.last_fix: ReflectorFix | None = None
+        self._far_fixes = 0
+        self.kidnap_resets = 0
+
+    def _kidnapped(self, fix: ReflectorFix) -> bool:
+        """True after ``kidnap_fixes`` consecutive fixes farther than ``kidnap_distance`` from
+        every particle cluster (improvement; eq. 8 alone cannot reach a cloud that is lost)."""
+        e = self.ecfg
+        if e.kidnap_fixes <= 0:
+            return False
+        dxy = np.hypot(*(self.particles[:, :2] - fix.pose[:2]).T)
+        if float(dxy.min()) > e.kidnap_distance:
+            self._far_fixes += 1
+        else:
+            self._far_fixes = 0
+        if self._far_fixes >= e.kidnap_fixes:
+            self._far_fixes = 0
+            return True
+        return False
 
     def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
         fix = self.observer.observe(scan)
@@ -232,6 +257,13 @@ class EnhancedAMCL(AMCL):
             return self._current(updated=False)
         e = self.ecfg
         self.predict(odom_pose)  # line 12
+        if self._kidnapped(fix):
+            self.particles = self.rng.multivariate_normal(
+                fix.pose, fix.trilateration.cov + np.diag(e.position_cov_floor), len(self.particles)
+            )
+            self.particles[:, 2] = _wrap(self.particles[:, 2])
+            self.weights = np.full(len(self.particles), 1.0 / len(self.particles))
+            self.kidnap_resets += 1
         p = self.measurement_weights(self.particles, scan)
         omega = self.weights * p  # eq. 5
         omega = omega / max(float(omega.sum()), 1e-300)
@@ -256,7 +288,8 @@ class EnhancedAMCL(AMCL):
         self.weights = w_new
         self.resample(w_new)  # ParticleGeneration(omega_new)
         # lines 20-26: inject new particles around mu_G with probability d (eq. 8)
-        d_new = position_weight(self.particles, mu, cov)
+        # eq. 8 on eq. 3 as printed (identity metric): particles within ~1.9 m / rad of mu_G
+        d_new = position_weight(self.particles, mu, None)
         prob = np.where(d_new > e.injection_threshold, d_new, 0.0)
         inject = self.rng.uniform(size=len(prob)) <= prob
         k = int(inject.sum())

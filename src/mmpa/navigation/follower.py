@@ -30,6 +30,8 @@ class FollowerConfig(BaseModel):
     turn_in_place: float = Field(0.8, gt=0)  # rad
     slow_radius: float = Field(0.8, gt=0)  # m: v ramps down inside this distance to the goal
     approach_radius: float = Field(0.15, gt=0)  # m: switch to the final approach
+    max_reentries: int = Field(3, ge=0)  # align -> position phase switches allowed
+    final_timeout: float = Field(25.0, gt=0)  # s in the final approach before giving up
     final: GoToPoseConfig = GoToPoseConfig(
         k_v=0.6, k_w=1.5, max_v=0.08, max_w=0.3, turn_in_place=0.35, pos_tol=0.003, yaw_tol=0.003
     )
@@ -52,6 +54,7 @@ class PathFollower:
         self._progress = 0.0
         self.final_phase = False
         self._align = False
+        self._reentries = 0
 
     def _project(self, xy: Array) -> float:
         best, best_s = np.inf, self._progress
@@ -90,8 +93,9 @@ class PathFollower:
         rho = float(np.hypot(dx, dy))
         c, s = np.cos(pose[2]), np.sin(pose[2])
         ex, ey = c * dx + s * dy, -s * dx + c * dy  # goal in the robot frame
-        if self._align and rho > 3 * f.pos_tol:
+        if self._align and rho > 3 * f.pos_tol and self._reentries < self.cfg.max_reentries:
             self._align = False
+            self._reentries += 1
         if not self._align:
             if rho <= f.pos_tol or (abs(ey) <= f.pos_tol and abs(ex) <= f.pos_tol):
                 self._align = True

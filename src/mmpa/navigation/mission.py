@@ -178,11 +178,17 @@ def navigate(
     total = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1))) or 1.0
     reached = False
     corrections = 0
+    final_t0: float | None = None
     while world.time - t0 < cfg.timeout:
         if tick % scan_every == 0:
             sense()
         est = localizer.pose_at(world.odometry.odometry().pose)
         v, w, done = follower.command(est)
+        if follower.final_phase and final_t0 is None:
+            final_t0 = world.time
+        if final_t0 is not None and world.time - final_t0 > cfg.follower.final_timeout:
+            world.base.stop()
+            break
         if done:
             est = stationary(cfg.settle_scans)
             ok = (
