@@ -163,5 +163,9 @@ def experiment(
     _show(outcome.summary, f"mmpa experiment {name} -> {out} (report.md, results.csv)")
 
 
+from mmpa.cli import navigation as _navigation  # noqa: E402  (registers navigate, map)
+
+_navigation.register(app)
+
 if __name__ == "__main__":  # pragma: no cover
     app()

@@ -251,7 +251,8 @@ class EnhancedAMCL(AMCL):
         fix = self.observer.observe(scan)
         self.last_fix = fix
         if fix is None:  # Algorithm 1 lines 4-10: original AMCL
-            return super().update(odom_pose, scan, force)
+            est = super().update(odom_pose, scan, force)
+            return PoseEstimate(est.pose, est.cov, est.n_particles, est.updated, "amcl")
         odom_pose = np.asarray(odom_pose, float).reshape(3)
         if not (force or self.ecfg.update_when_stationary or self._should_update(odom_pose)):
             return self._current(updated=False)
