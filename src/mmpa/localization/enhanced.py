@@ -31,6 +31,14 @@ Interpretations (the paper leaves them open):
   ~1.9 m from ``mu_G`` can trigger an injection even with the sharper eq. 3 weight.
 - kidnapping (improvement): ``kidnap_fixes`` consecutive fixes farther than
   ``kidnap_distance`` from every particle re-seed the cloud at ``N(mu_G, Sigma)``.
+- partial tracking (improvement): with fewer than three identified reflectors, the ones
+  still detected are associated with landmarks through the current estimate (gate
+  ``track_gate``). Two or more give a pose by Gauss-Newton on their ranges and bearings,
+  used as ``mu_G``; a single one weights the particles by its range/bearing likelihood.
+- mixture proposal (improvement): before weighting, ``proposal_fraction`` of the predicted
+  particles are redrawn from ``N(mu_G, Sigma)``, so that a cloud spread by the motion model
+  (Nav2's alphas are 0.2) still holds particles where the fix is; without it the sharp
+  product weight lands on a handful of particles.
 - ``update_when_stationary``: reflector fixes also update the filter while the base stands
   still (Nav2 waits for ``update_min_d``); the motion model then adds no noise, and the
   injected particles keep the cloud from collapsing.
@@ -170,6 +178,11 @@ class EnhancedConfig(BaseModel):
     position_weight_floor: float = Field(1e-4, ge=0)  # product fusion: keeps far particles alive
     kidnap_distance: float = Field(0.5, gt=0)  # m, fix farther than this from every particle
     kidnap_fixes: int = Field(3, ge=0)  # consecutive such fixes re-seed the cloud; 0 = off
+    proposal_fraction: float = Field(0.1, ge=0, le=1)  # improvement: mixture proposal at mu_G
+    track_partial: bool = True  # use 1-2 reflectors (associated by the estimate) when < 3
+    track_gate: float = Field(0.25, gt=0)  # m, association gate
+    track_sigma_range: float = Field(0.015, gt=0)  # m
+    track_sigma_bearing: float = Field(0.01, gt=0)  # rad
 
     @classmethod
     def paper(cls) -> EnhancedConfig:
@@ -180,6 +193,8 @@ class EnhancedConfig(BaseModel):
             update_when_stationary=False,
             fusion="paper",
             kidnap_fixes=0,
+            track_partial=False,
+            proposal_fraction=0.0,
         )
 
 
@@ -247,10 +262,91 @@ class EnhancedAMCL(AMCL):
             return True
         return False
 
+    def _associate(self, pose: Array) -> tuple[np.ndarray, np.ndarray]:
+        """Detections (base_link) -> landmark ids by proximity to where ``pose`` predicts the
+        landmarks; returns (detection indices, landmark ids) within ``track_gate``."""
+        det = self.observer.last_detections
+        L = self.observer.landmarks
+        c, s_ = np.cos(pose[2]), np.sin(pose[2])
+        pm = det.points @ np.array([[c, s_], [-s_, c]]) + pose[:2]
+        d = np.linalg.norm(pm[:, None, :] - L[None, :, :], axis=2)
+        nn = d.argmin(axis=1)
+        ok = d[np.arange(len(pm)), nn] <= self.ecfg.track_gate
+        di, li = np.flatnonzero(ok), nn[ok]
+        _, first = np.unique(li, return_index=True)  # one detection per landmark
+        return di[first], li[first]
+
+    def _tracked_fix(self, odom_pose: Array) -> ReflectorFix | None:
+        """Two or more reflectors associated by the estimate: a pose from their ranges and
+        bearings (Gauss-Newton from the estimate), used like a trilateration fix."""
+        pose = self.pose_at(odom_pose)
+        di, li = self._associate(pose)
+        if len(di) < 2:
+            return None
+        det = self.observer.last_detections
+        c = self.observer.cfg
+        beams = np.maximum(det.beams[di], 1)
+        sr = c.range_sigma_floor + c.range_sigma_beam / np.sqrt(beams)
+        sb = c.bearing_sigma_floor + (c.detection.radius + 0.01) / (det.ranges[di] * np.sqrt(beams))
+        try:
+            tri = trilaterate(
+                self.observer.landmarks[li], det.ranges[di], det.bearings[di], sr, sb, initial=pose
+            )
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+        if not np.all(np.isfinite(tri.pose)) or np.hypot(*(tri.pose[:2] - pose[:2])) > 0.2:
+            return None
+        return ReflectorFix(li, det.ranges[di], det.bearings[di], tri, len(det))
+
+    def _partial_update(
+        self, odom_pose: Array, scan: LaserScan, force: bool
+    ) -> PoseEstimate | None:
+        """Improvement for a single reflector in sight: associated with its landmark through
+        the current estimate, its range and bearing weight the particles together with the
+        laser (no fix, no injection)."""
+        e = self.ecfg
+        if not (force or e.update_when_stationary or self._should_update(odom_pose)):
+            return None
+        di, li = self._associate(self.pose_at(odom_pose))  # before predict: moved by odometry
+        if len(di) == 0:
+            return None
+        self.predict(odom_pose)
+        det = self.observer.last_detections
+        L = self.observer.landmarks[li]
+        P = self.particles
+        dx = L[None, :, 0] - P[:, 0:1]
+        dy = L[None, :, 1] - P[:, 1:2]
+        rng_err = np.hypot(dx, dy) - det.ranges[di][None, :]
+        brg_err = _wrap(np.arctan2(dy, dx) - P[:, 2:3] - det.bearings[di][None, :])
+        ll = np.exp(
+            -0.5 * ((rng_err / e.track_sigma_range) ** 2 + (brg_err / e.track_sigma_bearing) ** 2)
+        ).prod(axis=1)
+        p = self.measurement_weights(P, scan)
+        self._apply_weights(p)
+        w = self.weights * (ll + 1e-12)
+        total = float(w.sum())
+        if not np.isfinite(total) or total <= 0:
+            return None
+        self.weights = w / total
+        self.resample(self.weights)
+        self._odom_last_update = odom_pose.copy()
+        self._force_update = False
+        self._estimate = None
+        est = self._current(updated=True)
+        return PoseEstimate(est.pose, est.cov, est.n_particles, True, "enhanced-partial")
+
     def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
         fix = self.observer.observe(scan)
         self.last_fix = fix
-        if fix is None:  # Algorithm 1 lines 4-10: original AMCL
+        if fix is None and self.ecfg.track_partial and len(self.observer.last_detections) > 0:
+            odom_arr = np.asarray(odom_pose, float).reshape(3)
+            fix = self._tracked_fix(odom_arr)
+            if fix is None:
+                est = self._partial_update(odom_arr, scan, force)
+                if est is not None:
+                    return est
+        if fix is None:
+            # Algorithm 1 lines 4-10: original AMCL
             est = super().update(odom_pose, scan, force)
             return PoseEstimate(est.pose, est.cov, est.n_particles, est.updated, "amcl")
         odom_pose = np.asarray(odom_pose, float).reshape(3)
@@ -265,14 +361,20 @@ class EnhancedAMCL(AMCL):
             self.particles[:, 2] = _wrap(self.particles[:, 2])
             self.weights = np.full(len(self.particles), 1.0 / len(self.particles))
             self.kidnap_resets += 1
-        p = self.measurement_weights(self.particles, scan)
-        omega = self.weights * p  # eq. 5
-        omega = omega / max(float(omega.sum()), 1e-300)
-        self._apply_weights(p)  # keeps w_slow / w_fast bookkeeping of AMCL
         mu = fix.pose
         cov = None
         if e.position_metric == "trilateration":
             cov = fix.trilateration.cov + np.diag(e.position_cov_floor)
+        if e.proposal_fraction > 0:  # mixture proposal: some predicted particles drawn at mu_G
+            k = round(e.proposal_fraction * len(self.particles))
+            idx = self.rng.choice(len(self.particles), k, replace=False)
+            Lc = np.linalg.cholesky(cov if cov is not None else np.eye(3))
+            self.particles[idx] = self.rng.standard_normal((k, 3)) @ Lc.T + mu
+            self.particles[idx, 2] = _wrap(self.particles[idx, 2])
+        p = self.measurement_weights(self.particles, scan)
+        omega = self.weights * p  # eq. 5
+        omega = omega / max(float(omega.sum()), 1e-300)
+        self._apply_weights(p)  # keeps w_slow / w_fast bookkeeping of AMCL
         d = position_weight(self.particles, mu, cov)  # eq. 3 (line 14)
         s = orientation_weight(
             self.particles, self.observer.landmarks[fix.ids], fix.bearings, e.bearing_sigma

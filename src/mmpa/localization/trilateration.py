@@ -93,18 +93,29 @@ def trilaterate(
     sigma_range: float | Array = 0.01,
     sigma_bearing: float | Array = 0.003,
     refine_heading: bool = True,
+    initial: Array | None = None,
 ) -> TrilaterationResult:
     """``mu_G`` from eq. 1 + eq. 2, optionally refined jointly (see module docstring).
 
     ``landmarks`` (n, 2) map positions of the identified reflectors, ``ranges`` (n,) m and
     ``bearings`` (n,) rad measured from the robot frame (e.g. ``base_link``); sigmas per
-    reflector or scalar.
+    reflector or scalar. With ``initial`` (a pose guess, e.g. from tracking) eq. 1-2 are
+    skipped and two reflectors suffice (ranges and bearings give four equations).
     """
-    L, r = _check(landmarks, ranges, bearings)
-    phi = np.asarray(bearings, float).reshape(-1)
-    G, _ = trilaterate_eq1(L, r)
-    th = heading_eq2(G, L, phi)
-    x = np.array([G[0], G[1], th])
+    if initial is not None:  # tracking: two reflectors with ranges and bearings suffice
+        L = np.asarray(landmarks, float).reshape(-1, 2)
+        r = np.asarray(ranges, float).reshape(-1)
+        if len(L) < 2 or len(r) != len(L) or not np.all(np.isfinite(r)):
+            raise InvalidInputError("pose refinement needs >= 2 reflectors with finite ranges")
+        phi = np.asarray(bearings, float).reshape(-1)
+        x = np.asarray(initial, float).reshape(3).copy()
+        refine_heading = True
+    else:
+        L, r = _check(landmarks, ranges, bearings)
+        phi = np.asarray(bearings, float).reshape(-1)
+        G, _ = trilaterate_eq1(L, r)
+        th = heading_eq2(G, L, phi)
+        x = np.array([G[0], G[1], th])
     sr = np.broadcast_to(np.asarray(sigma_range, float), r.shape)
     sb = np.broadcast_to(np.asarray(sigma_bearing, float), r.shape)
     wts = np.concatenate([1 / sr**2, 1 / sb**2])
