@@ -161,8 +161,11 @@ class AMCL:
         self.grid = grid
         self.laser_pose = np.asarray(laser_pose, float).reshape(3)
         self.rng = rng if rng is not None else np.random.default_rng(0)
-        self._dist = grid.distance_field(self.cfg.laser_likelihood_max_dist)
-        self._free_cells = np.argwhere(grid.free)  # (row, col)
+        self._dist = grid.distance_field(self.cfg.laser_likelihood_max_dist).astype(np.float32)
+        self._free_cells = np.flatnonzero(grid.free).astype(np.int32)  # row * W + col
+        self._table: Array = np.zeros(0)
+        self._table_key: float | None = None
+        self._rmax = 20.0
         if len(self._free_cells) == 0:
             raise InvalidInputError("the map has no free cells to localize in")
         self.particles = np.zeros((0, 3))
@@ -206,7 +209,7 @@ class AMCL:
     def _random_free_poses(self, n: int) -> Array:
         cells = self._free_cells[self.rng.integers(0, len(self._free_cells), n)]
         g = self.grid
-        xy = g.cell_to_world(cells[:, 1], cells[:, 0])
+        xy = g.cell_to_world(cells % g.width, cells // g.width)
         xy += self.rng.uniform(-0.5, 0.5, (n, 2)) * g.resolution
         th = self.rng.uniform(-np.pi, np.pi, n)
         return np.column_stack([xy, th])
@@ -237,18 +240,30 @@ class AMCL:
         """Nav2 ``LikelihoodFieldModel``: ``p = 1 + sum_beams pz^3`` with
         ``pz = z_hit exp(-z^2 / (2 sigma_hit^2)) + z_rand / range_max`` and ``z`` the distance
         from the beam endpoint to the nearest obstacle (``max_dist`` off the map)."""
-        c, g = self.cfg, self.grid
+        g = self.grid
+        table = self._pz3_table()
         ox, oy, oth = self._laser_origin(particles)
-        ang = oth[:, None] + angles[None, :]
-        ex = ox[:, None] + ranges[None, :] * np.cos(ang)
-        ey = oy[:, None] + ranges[None, :] * np.sin(ang)
-        col = np.floor((ex - g.origin[0]) / g.resolution).astype(np.int64)
-        row = np.floor((ey - g.origin[1]) / g.resolution).astype(np.int64)
-        inside = (col >= 0) & (col < g.width) & (row >= 0) & (row < g.height)
-        z = np.full(ex.shape, c.laser_likelihood_max_dist)
-        z[inside] = self._dist[row[inside], col[inside]]
-        pz = c.z_hit * np.exp(-(z * z) / (2 * c.sigma_hit**2)) + c.z_rand / self._rmax
-        return 1.0 + (pz**3).sum(axis=1)
+        # endpoints without trig on the (N, B) grid: rotate the beam endpoints per particle
+        bx, by = ranges * np.cos(angles), ranges * np.sin(angles)
+        c, s = np.cos(oth)[:, None], np.sin(oth)[:, None]
+        inv = 1.0 / g.resolution
+        fx = (ox - g.origin[0])[:, None] * inv + (c * bx - s * by) * inv
+        fy = (oy - g.origin[1])[:, None] * inv + (s * bx + c * by) * inv
+        # the table has a one-cell border holding max_dist's value: clip into it
+        col = np.clip(np.floor(fx), -1, g.width).astype(np.int32) + 1
+        row = np.clip(np.floor(fy), -1, g.height).astype(np.int32) + 1
+        return 1.0 + table[row * (g.width + 2) + col].sum(axis=1)
+
+    def _pz3_table(self) -> Array:
+        """Flattened (H+2)(W+2) table of ``pz^3`` per cell (border: off the map)."""
+        key = float(self._rmax)
+        if self._table_key != key:
+            c = self.cfg
+            d = np.pad(self._dist, 1, constant_values=c.laser_likelihood_max_dist).astype(float)
+            pz = c.z_hit * np.exp(-(d * d) / (2 * c.sigma_hit**2)) + c.z_rand / key
+            self._table = (pz**3).ravel().astype(np.float32)
+            self._table_key = key
+        return self._table
 
     def raycast(self, particles: Array, angles: Array, max_range: float) -> Array:
         """Expected ranges (N, B) by marching each beam through the grid at half a cell."""
