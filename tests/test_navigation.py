@@ -11,7 +11,13 @@ from mmpa.errors import UnreachableError
 from mmpa.localization.localizer import make_localizer
 from mmpa.localization.maps import Box2D, rasterize
 from mmpa.navigation.follower import PathFollower
-from mmpa.navigation.mission import NavigateConfig, laser_pose2d, navigate, twin_map
+from mmpa.navigation.mission import (
+    NavigateConfig,
+    laser_pose2d,
+    navigate,
+    twin_map,
+    twin_nav_map,
+)
 from mmpa.navigation.planner import CostMap, PlannerConfig, plan_path
 from mmpa.sim.world import SimWorld
 
@@ -54,7 +60,10 @@ def test_navigate_on_the_estimate_parks_at_the_site() -> None:
         loc = make_localizer("enhanced", grid, laser_pose2d(world), np.random.default_rng(0))
         loc.initialize(world.truth.base_pose2d() + np.array([0.05, -0.05, 0.03]))
         goal = world.scene.site("2").pose2d
-        res = navigate(world, loc, grid, goal, NavigateConfig(scan_rate=5.0, timeout=60.0))
+        cm = CostMap(twin_nav_map(world))
+        res = navigate(
+            world, loc, grid, goal, NavigateConfig(scan_rate=5.0, timeout=60.0), costmap=cm
+        )
     assert res.reached
     assert res.parking_error_xy < 0.01 and res.parking_error_yaw < 0.01
     assert np.hypot(*res.localization_error[:2]) < 0.006

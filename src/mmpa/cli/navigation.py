@@ -33,7 +33,14 @@ def navigate_cmd(
     import numpy as np
 
     from mmpa.localization.localizer import make_localizer
-    from mmpa.navigation.mission import NavigateConfig, laser_pose2d, navigate, twin_map
+    from mmpa.navigation.mission import (
+        NavigateConfig,
+        laser_pose2d,
+        navigate,
+        twin_map,
+        twin_nav_map,
+    )
+    from mmpa.navigation.planner import CostMap
     from mmpa.sim.error_model import ErrorModelConfig
     from mmpa.sim.world import SimWorld
 
@@ -44,7 +51,8 @@ def navigate_cmd(
             loc = make_localizer(method, grid, laser_pose2d(world), np.random.default_rng(seed))
             loc.initialize(world.scene.site(start).pose2d)
             with console.status(f"navigating site {start} -> site {to} ({method})"):
-                res = navigate(world, loc, grid, goal, NavigateConfig(timeout=timeout))
+                cm = CostMap(twin_nav_map(world))
+                res = navigate(world, loc, grid, goal, NavigateConfig(timeout=timeout), costmap=cm)
     except MMPAError as e:
         console.print(f"[bold red]error:[/] {e}")
         raise typer.Exit(2) from None

@@ -29,7 +29,14 @@ from mmpa.errors import MMPAError
 from mmpa.experiments import plots
 from mmpa.geometry import Array, T_to_vec6, apply, inv, se2_to_T, wrap_angle
 from mmpa.navigation import GoToPoseConfig, go_to_pose_command
-from mmpa.navigation.mission import NavigateConfig, laser_pose2d, navigate, twin_map
+from mmpa.navigation.mission import (
+    NavigateConfig,
+    laser_pose2d,
+    navigate,
+    twin_map,
+    twin_nav_map,
+)
+from mmpa.navigation.planner import CostMap
 from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.scene import load_scene
 from mmpa.sim.world import SimWorld
@@ -140,7 +147,15 @@ def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None)
             )
             loc.initialize(world.scene.site(cfg.start_site).pose2d)  # the operator's rough pose
             nav_cfg = cfg.navigate.model_copy(update={"timeout": cfg.timeout})
-            res = navigate(world, loc, grid, goal, nav_cfg, progress=progress)
+            res = navigate(
+                world,
+                loc,
+                grid,
+                goal,
+                nav_cfg,
+                progress=progress,
+                costmap=CostMap(twin_nav_map(world), nav_cfg.planner),
+            )
             done = res.reached
             path = list(res.trace["truth"]) or [start]
             loc_err = res.localization_error

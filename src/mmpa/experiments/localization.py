@@ -23,7 +23,13 @@ from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.geometry import wrap_angle
 from mmpa.localization.amcl import AMCLConfig
 from mmpa.localization.localizer import METHODS, make_localizer
-from mmpa.navigation.mission import NavigateConfig, laser_pose2d, navigate, twin_map
+from mmpa.navigation.mission import (
+    NavigateConfig,
+    laser_pose2d,
+    navigate,
+    twin_map,
+    twin_nav_map,
+)
 from mmpa.navigation.planner import CostMap
 from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.world import SimWorld
@@ -56,6 +62,7 @@ class Config(BaseModel):
     goal_site: str = "1"
     corridor_x: tuple[float, float] = (-10.5, -4.0)
     corridor_y: tuple[float, float] = (0.75, 1.65)
+    start_clearance: float = Field(0.55, gt=0)  # m from obstacles (circumscribed radius 0.48)
     init_sigma_xy: float = Field(0.10, ge=0)
     init_sigma_theta: float = Field(0.05, ge=0)
     success_threshold: float = Field(0.012, gt=0)  # m (paper: 12 mm)
@@ -69,13 +76,22 @@ class Config(BaseModel):
 
 def _trial(cfg: Config, k: int, method: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     rng = np.random.default_rng([cfg.seed, k])
-    start = np.array(
-        [rng.uniform(*cfg.corridor_x), rng.uniform(*cfg.corridor_y), rng.uniform(-np.pi, np.pi)]
-    )
-    guess = start + np.array(
-        [*rng.normal(0, cfg.init_sigma_xy, 2), rng.normal(0, cfg.init_sigma_theta)]
-    )
     with SimWorld(errors=ErrorModelConfig(seed=cfg.seed), site="0", episode=k) as world:
+        nav = CostMap(twin_nav_map(world, cfg.resolution))
+        for _ in range(1000):  # a start where the whole footprint is clear of obstacles
+            start = np.array(
+                [
+                    rng.uniform(*cfg.corridor_x),
+                    rng.uniform(*cfg.corridor_y),
+                    rng.uniform(-np.pi, np.pi),
+                ]
+            )
+            c, r = nav.grid.world_to_cell(start[:2])
+            if nav.dist[r, c] >= cfg.start_clearance:
+                break
+        guess = start + np.array(
+            [*rng.normal(0, cfg.init_sigma_xy, 2), rng.normal(0, cfg.init_sigma_theta)]
+        )
         world.reset(pose2d=start)
         grid = twin_map(world, cfg.resolution)
         loc = make_localizer(
@@ -84,7 +100,14 @@ def _trial(cfg: Config, k: int, method: str) -> tuple[dict[str, Any], dict[str, 
         loc.initialize(guess)
         goal = world.scene.site(cfg.goal_site).pose2d
         t0 = time.perf_counter()
-        res = navigate(world, loc, grid, goal, cfg.navigate, costmap=CostMap(grid))
+        res = navigate(
+            world,
+            loc,
+            grid,
+            goal,
+            cfg.navigate,
+            costmap=CostMap(twin_nav_map(world, cfg.resolution)),
+        )
         wall = time.perf_counter() - t0
     e = res.localization_error
     exy = float(np.hypot(e[0], e[1]))

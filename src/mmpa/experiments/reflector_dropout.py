@@ -26,7 +26,7 @@ from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.geometry import wrap_angle
 from mmpa.localization.localizer import make_localizer
 from mmpa.navigation.follower import FollowerConfig, PathFollower
-from mmpa.navigation.mission import laser_pose2d, twin_map
+from mmpa.navigation.mission import laser_pose2d, twin_map, twin_nav_map
 from mmpa.navigation.planner import CostMap, plan_path
 from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.world import SimWorld
@@ -92,7 +92,7 @@ def _dropout_run(cfg: Config, k: int) -> tuple[list[dict[str, Any]], dict[str, A
     rng = np.random.default_rng([cfg.seed, k])
     with SimWorld(errors=ErrorModelConfig(seed=cfg.seed), site="0", episode=k) as world:
         grid = twin_map(world)
-        cm = CostMap(grid)
+        cm = CostMap(twin_nav_map(world))
         route = _route(world, cm, cfg)
         start_heading = float(np.arctan2(*(route[1] - route[0])[::-1]))
         world.reset(pose2d=np.array([*route[0], start_heading]))

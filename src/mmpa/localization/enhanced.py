@@ -29,8 +29,9 @@ Interpretations (the paper leaves them open):
   ``fusion="paper"`` is eq. 6 as printed.
 - eq. 8's probability always uses eq. 3 as printed (identity metric), so particles up to
   ~1.9 m from ``mu_G`` can trigger an injection even with the sharper eq. 3 weight.
-- kidnapping (improvement): ``kidnap_fixes`` consecutive fixes farther than
-  ``kidnap_distance`` from every particle re-seed the cloud at ``N(mu_G, Sigma)``.
+- gating and kidnapping (improvement): a fix farther than ``kidnap_distance`` from every
+  particle is not fused; ``kidnap_fixes`` consecutive such fixes (from at least
+  ``kidnap_min_reflectors`` reflectors) re-seed the cloud at ``N(mu_G, Sigma)``.
 - partial tracking (improvement): with fewer than three identified reflectors, the ones
   still detected are associated with landmarks through the current estimate (gate
   ``track_gate``). Two or more give a pose by Gauss-Newton on their ranges and bearings,
@@ -178,6 +179,7 @@ class EnhancedConfig(BaseModel):
     position_weight_floor: float = Field(1e-4, ge=0)  # product fusion: keeps far particles alive
     kidnap_distance: float = Field(0.5, gt=0)  # m, fix farther than this from every particle
     kidnap_fixes: int = Field(3, ge=0)  # consecutive such fixes re-seed the cloud; 0 = off
+    kidnap_min_reflectors: int = Field(4, ge=3)  # only redundant fixes count toward re-seeding
     proposal_fraction: float = Field(0.1, ge=0, le=1)  # improvement: mixture proposal at mu_G
     track_partial: bool = True  # use 1-2 reflectors (associated by the estimate) when < 3
     track_gate: float = Field(0.25, gt=0)  # m, association gate
@@ -246,21 +248,25 @@ class EnhancedAMCL(AMCL):
         self._far_fixes = 0
         self.kidnap_resets = 0
 
-    def _kidnapped(self, fix: ReflectorFix) -> bool:
-        """True after ``kidnap_fixes`` consecutive fixes farther than ``kidnap_distance`` from
-        every particle cluster (improvement; eq. 8 alone cannot reach a cloud that is lost)."""
+    def _gate(self, fix: ReflectorFix) -> str:
+        """``"ok"``, ``"outlier"`` or ``"reseed"`` for a fix (improvement). A fix farther than
+        ``kidnap_distance`` from every particle is not fused (a wrong identification must not
+        drag the cloud away); ``kidnap_fixes`` consecutive such fixes from at least
+        ``kidnap_min_reflectors`` reflectors mean the robot was carried off: re-seed the cloud
+        at ``N(mu_G, Sigma)`` (eq. 8 alone cannot reach a cloud that is lost)."""
         e = self.ecfg
         if e.kidnap_fixes <= 0:
-            return False
+            return "ok"
         dxy = np.hypot(*(self.particles[:, :2] - fix.pose[:2]).T)
-        if float(dxy.min()) > e.kidnap_distance:
-            self._far_fixes += 1
-        else:
+        if float(dxy.min()) <= e.kidnap_distance:
             self._far_fixes = 0
+            return "ok"
+        if fix.trilateration.n >= e.kidnap_min_reflectors:
+            self._far_fixes += 1
         if self._far_fixes >= e.kidnap_fixes:
             self._far_fixes = 0
-            return True
-        return False
+            return "reseed"
+        return "outlier"
 
     def _associate(self, pose: Array) -> tuple[np.ndarray, np.ndarray]:
         """Detections (base_link) -> landmark ids by proximity to where ``pose`` predicts the
@@ -353,8 +359,13 @@ class EnhancedAMCL(AMCL):
         if not (force or self.ecfg.update_when_stationary or self._should_update(odom_pose)):
             return self._current(updated=False)
         e = self.ecfg
+        gate = self._gate(fix)
+        if gate == "outlier":
+            self.last_fix = None
+            est = AMCL.update(self, odom_pose, scan, force=True)
+            return PoseEstimate(est.pose, est.cov, est.n_particles, est.updated, "amcl")
         self.predict(odom_pose)  # line 12
-        if self._kidnapped(fix):
+        if gate == "reseed":
             self.particles = self.rng.multivariate_normal(
                 fix.pose, fix.trilateration.cov + np.diag(e.position_cov_floor), len(self.particles)
             )

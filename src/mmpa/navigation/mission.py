@@ -30,7 +30,14 @@ from mmpa.navigation.planner import CostMap, PlannerConfig, plan_path
 if TYPE_CHECKING:  # pragma: no cover
     from mmpa.sim.world import SimWorld
 
-__all__ = ["NavigateConfig", "NavigationResult", "laser_pose2d", "navigate", "twin_map"]
+__all__ = [
+    "NavigateConfig",
+    "NavigationResult",
+    "laser_pose2d",
+    "navigate",
+    "twin_map",
+    "twin_nav_map",
+]
 
 _GEOM_BOX = int(mujoco.mjtGeom.mjGEOM_BOX)
 _GEOM_CYL = int(mujoco.mjtGeom.mjGEOM_CYLINDER)
@@ -41,10 +48,17 @@ def laser_pose2d(world: SimWorld) -> Array:
     return T_to_se2(world.nominal.lidar.T_base_link_laser)
 
 
-def twin_map(world: SimWorld, resolution: float = 0.05, margin: float = 0.5) -> OccupancyGrid:
-    """Occupancy grid of everything the lidar plane cuts, plus surveyed reflector landmarks."""
+def twin_map(
+    world: SimWorld,
+    resolution: float = 0.05,
+    margin: float = 0.5,
+    z_band: tuple[float, float] | None = None,
+) -> OccupancyGrid:
+    """Occupancy grid of everything the lidar plane cuts (or, with ``z_band`` = (low, high),
+    everything overlapping that height band), plus the surveyed reflector landmarks."""
     m, d = world.model, world.data
     z = float(world.nominal.lidar.T_base_link_laser[2, 3])
+    lo, hi = z_band if z_band is not None else (z, z)
     boxes: list[Box2D] = []
     for g in range(m.ngeom):
         if m.geom_group[g] > 2 or m.geom_type[g] not in (_GEOM_BOX, _GEOM_CYL):
@@ -55,7 +69,7 @@ def twin_map(world: SimWorld, resolution: float = 0.05, margin: float = 0.5) -> 
         size = m.geom_size[g]
         pos = d.geom_xpos[g]
         half_h = size[2] if m.geom_type[g] == _GEOM_BOX else size[1]
-        if abs(pos[2] - z) > half_h:
+        if pos[2] + half_h < lo or pos[2] - half_h > hi:
             continue
         if m.geom_type[g] == _GEOM_CYL:
             boxes.append(Box2D((float(pos[0]), float(pos[1])), radius=float(size[0])))
@@ -76,6 +90,15 @@ def twin_map(world: SimWorld, resolution: float = 0.05, margin: float = 0.5) -> 
     return rasterize(
         boxes, bounds, resolution, world.map_reflectors.copy(), float(sc.reflectors.radius)
     )
+
+
+def twin_nav_map(world: SimWorld, resolution: float = 0.05) -> OccupancyGrid:
+    """Obstacle map for planning: everything the base body could hit (between its ground
+    clearance and its top), including low things the lidar plane misses (e.g. the fiducial
+    artifact); the speed bump (lower than the clearance) stays traversable. Nav2 would get
+    these from other sensors or a keep-out layer."""
+    b = world.nominal.base
+    return twin_map(world, resolution, z_band=(b.ground_clearance + 0.005, b.body_size[2]))
 
 
 class NavigateConfig(BaseModel):

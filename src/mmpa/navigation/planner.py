@@ -27,7 +27,7 @@ __all__ = ["CostMap", "PlannerConfig", "plan_path"]
 class PlannerConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    inscribed_radius: float = Field(0.30, ge=0)  # m, lethal inflation
+    inscribed_radius: float = Field(0.36, ge=0)  # m, lethal inflation
     inflation_radius: float = Field(0.9, ge=0)  # m
     cost_scaling_factor: float = Field(4.0, gt=0)  # 1/m
     cost_weight: float = Field(3.0, ge=0)
