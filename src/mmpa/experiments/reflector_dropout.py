@@ -279,7 +279,8 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     min_vis = [x["min_visible_during"] for x in rows]
     report = (
         f"{n} run(s); reflectors occluded from t = {cfg.dropout_start:.0f} s to "
-        f"{cfg.dropout_end:.0f} s (at most {max(min_vis)} detected during the dropout). "
+        f"{cfg.dropout_end:.0f} s (fewest reflectors detected during it: {min(min_vis)} to "
+        f"{max(min_vis)} per run). "
         f"Recovery: time after the dropout until the position error stays below "
         f"{cfg.recovered_below * 1000:.0f} mm for 1 s (NaN: never).\n\n"
         "Paper (Fig. 10, read from the text): trilateration only fails during the dropout, "
