@@ -182,7 +182,9 @@ class EnhancedConfig(BaseModel):
     kidnap_min_reflectors: int = Field(4, ge=3)  # only redundant fixes count toward re-seeding
     proposal_fraction: float = Field(0.1, ge=0, le=1)  # improvement: mixture proposal at mu_G
     track_partial: bool = True  # use 1-2 reflectors (associated by the estimate) when < 3
-    track_gate: float = Field(0.25, gt=0)  # m, association gate
+    track_gate: float = Field(0.5, gt=0)  # m (odometry heading drifts ~0.05 rad per turn)
+    track_pair_tol: float = Field(0.05, gt=0)  # m, detected vs map distance of tracked pairs
+    track_max_turn: float = Field(0.15, gt=0)  # rad, largest heading change of a tracked fix
     track_sigma_range: float = Field(0.015, gt=0)  # m
     track_sigma_bearing: float = Field(0.01, gt=0)  # rad
 
@@ -291,6 +293,12 @@ class EnhancedAMCL(AMCL):
             return None
         det = self.observer.last_detections
         c = self.observer.cfg
+        # rigid check (a two-point "triangle match"): detected and map distances must agree
+        P, L = det.points[di], self.observer.landmarks[li]
+        i, j = np.triu_indices(len(di), 1)
+        dd = np.abs(np.linalg.norm(P[i] - P[j], axis=1) - np.linalg.norm(L[i] - L[j], axis=1))
+        if dd.max() > self.ecfg.track_pair_tol:
+            return None
         beams = np.maximum(det.beams[di], 1)
         sr = c.range_sigma_floor + c.range_sigma_beam / np.sqrt(beams)
         sb = c.bearing_sigma_floor + (c.detection.radius + 0.01) / (det.ranges[di] * np.sqrt(beams))
@@ -300,7 +308,15 @@ class EnhancedAMCL(AMCL):
             )
         except (ValueError, np.linalg.LinAlgError):
             return None
-        if not np.all(np.isfinite(tri.pose)) or np.hypot(*(tri.pose[:2] - pose[:2])) > 0.2:
+        if not np.all(np.isfinite(tri.pose)) or np.hypot(*(tri.pose[:2] - pose[:2])) > 0.3:
+            return None
+        if abs(float(_wrap(tri.pose[2] - pose[2]))) > self.ecfg.track_max_turn:
+            return None
+        # consistency: every reflector within outlier_sigmas of the refined pose
+        d = self.observer.landmarks[li] - tri.pose[:2]
+        res_r = (np.linalg.norm(d, axis=1) - det.ranges[di]) / sr
+        res_b = _wrap(np.arctan2(d[:, 1], d[:, 0]) - tri.pose[2] - det.bearings[di]) / sb
+        if max(np.abs(res_r).max(), np.abs(res_b).max()) > c.outlier_sigmas:
             return None
         return ReflectorFix(li, det.ranges[di], det.bearings[di], tri, len(det))
 
