@@ -235,5 +235,9 @@ def run_cmd(
         raise typer.Exit(1)
 
 
+from mmpa.cli import navigation as _navigation  # noqa: E402  (registers navigate, map)
+
+_navigation.register(app)
+
 if __name__ == "__main__":  # pragma: no cover
     app()

@@ -1,8 +1,9 @@
 """The main job, first version: drive from Site 0 to Site 1 in the twin, look at the bench.
 
-``run_demo`` builds the default world, drives the base with a go-to-pose controller on the
-TRUE pose (localization lands in its own issue), captures a wrist RGB-D frame and a lidar
-scan at the goal, and writes a run folder:
+``run_demo`` builds the default world, localizes with the reflector-enhanced AMCL (paper 001
+§3.1) on a map made from the scene, plans with A* and drives there on the ESTIMATE
+(``localization="truth"`` keeps the old true-pose go-to-pose controller), captures a wrist
+RGB-D frame and a lidar scan at the goal, and writes a run folder:
 
 - ``color.png``, ``depth.png``: the wrist camera frame (noisy, as software sees it);
 - ``topdown.png``: map with walls, desks, reflectors, the robot, its path and the scan;
@@ -28,6 +29,14 @@ from mmpa.errors import MMPAError
 from mmpa.experiments import plots
 from mmpa.geometry import Array, T_to_vec6, apply, inv, se2_to_T, wrap_angle
 from mmpa.navigation import GoToPoseConfig, go_to_pose_command
+from mmpa.navigation.mission import (
+    NavigateConfig,
+    laser_pose2d,
+    navigate,
+    twin_map,
+    twin_nav_map,
+)
+from mmpa.navigation.planner import CostMap
 from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.scene import load_scene
 from mmpa.sim.world import SimWorld
@@ -48,7 +57,10 @@ class DemoConfig(BaseModel):
     goal_site: str = "1"
     control_rate: float = Field(20.0, gt=0)  # Hz
     timeout: float = Field(90.0, gt=0)  # s of simulated time
-    controller: GoToPoseConfig = GoToPoseConfig()
+    controller: GoToPoseConfig = GoToPoseConfig()  # used only with localization="truth"
+    # a method of mmpa.localization.localizer.METHODS, or "truth" (true-pose control)
+    localization: str = "enhanced"
+    navigate: NavigateConfig = NavigateConfig()
     arm_view: tuple[float, ...] | None = None  # joints for the bench view; None: view_bench
     errors: ErrorModelConfig = ErrorModelConfig()
 
@@ -122,23 +134,31 @@ def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None)
         q_view = np.array(
             cfg.arm_view if cfg.arm_view is not None else world.nominal.arm.view_bench
         )
-        dt = 1.0 / cfg.control_rate
         start = world.truth.base_pose2d()
-        dist0 = float(np.hypot(*(goal[:2] - start[:2])))
-        path = [start]
-        done = False
-        while world.time < cfg.timeout:
-            pose = world.truth.base_pose2d()  # TRUE pose until localization lands
-            v, w, done = go_to_pose_command(pose, goal, cfg.controller)
-            if done:
-                break
-            world.base.set_velocity(v, w)
-            world.step(dt)
-            path.append(world.truth.base_pose2d())
-            if progress is not None:
-                progress(
-                    "driving", 1.0 - float(np.hypot(*(goal[:2] - pose[:2]))) / max(dist0, 1e-9)
-                )
+        if cfg.localization == "truth":
+            done, path = _drive_true_pose(world, goal, cfg, progress)
+            loc_err = None
+        else:
+            from mmpa.localization.localizer import make_localizer
+
+            grid = twin_map(world)
+            loc = make_localizer(
+                cfg.localization, grid, laser_pose2d(world), np.random.default_rng(cfg.errors.seed)
+            )
+            loc.initialize(world.scene.site(cfg.start_site).pose2d)  # the operator's rough pose
+            nav_cfg = cfg.navigate.model_copy(update={"timeout": cfg.timeout})
+            res = navigate(
+                world,
+                loc,
+                grid,
+                goal,
+                nav_cfg,
+                progress=progress,
+                costmap=CostMap(twin_nav_map(world), nav_cfg.planner),
+            )
+            done = res.reached
+            path = list(res.trace["truth"]) or [start]
+            loc_err = res.localization_error
         world.base.stop()
         world.step(0.5)
         drive_time = world.time
@@ -155,7 +175,7 @@ def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None)
             extra,
             path_xy,
             goal,
-            f"demo: site {cfg.start_site} -> site {cfg.goal_site} (true pose control)",
+            f"demo: site {cfg.start_site} -> {cfg.goal_site} ({cfg.localization} pose control)",
         )
         summary = {
             "start_site": cfg.start_site,
@@ -166,12 +186,38 @@ def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None)
             "parking_error_xy_m": round(float(np.hypot(*(final[:2] - goal[:2]))), 5),
             "parking_error_yaw_deg": round(float(np.rad2deg(wrap_angle(final[2] - goal[2]))), 4),
             "parking_error_6d": [round(float(x), 6) for x in T_to_vec6(T_err)],
+            "localization": cfg.localization,
+            "localization_error_xy_m": (
+                None if loc_err is None else round(float(np.hypot(*loc_err[:2])), 5)
+            ),
             "odometry_distance_m": round(float(np.hypot(*odo.pose[:2])), 4),
             "true_distance_m": round(float(np.hypot(*(final[:2] - start[:2]))), 4),
             **{k: v for k, v in extra.items() if not k.startswith("_")},
         }
     _write_summary(out, summary)
     return summary
+
+
+def _drive_true_pose(
+    world: SimWorld, goal: Array, cfg: DemoConfig, progress: Progress | None
+) -> tuple[bool, list[Array]]:
+    """The first demo's controller: go-to-pose on the TRUE pose (a reference, not a robot)."""
+    dt = 1.0 / cfg.control_rate
+    start = world.truth.base_pose2d()
+    dist0 = float(np.hypot(*(goal[:2] - start[:2])))
+    path = [start]
+    done = False
+    while world.time < cfg.timeout:
+        pose = world.truth.base_pose2d()
+        v, w, done = go_to_pose_command(pose, goal, cfg.controller)
+        if done:
+            break
+        world.base.set_velocity(v, w)
+        world.step(dt)
+        path.append(world.truth.base_pose2d())
+        if progress is not None:
+            progress("driving", 1.0 - float(np.hypot(*(goal[:2] - pose[:2]))) / max(dist0, 1e-9))
+    return done, path
 
 
 def snapshot(cfg: DemoConfig, site: str, out: str | Path) -> dict:

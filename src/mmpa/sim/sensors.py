@@ -272,7 +272,10 @@ class SimLidar:
         self._normal = np.empty((n, 3), dtype=np.float64)
         names = _names(model, mujoco.mjtObj.mjOBJ_GEOM, model.ngeom)
         # index ngeom (= geomid -1) means "no hit"
-        self._retro = np.array([is_retroreflector(s) for s in names] + [False], dtype=bool)
+        # index ngeom + 1 (= geomid -2, an occluder) and ngeom (-1, no hit): not retroreflective
+        self._retro = np.array([is_retroreflector(s) for s in names] + [False, False], dtype=bool)
+        #: vertical cylinders ``(x, y, radius)`` in ``map`` that block beams (e.g. people)
+        self.occluders: list[tuple[float, float, float]] = []
 
     def cast(self) -> tuple[Array, Array, Array]:
         """Noise-free ray cast: ``(ranges, geom ids, cos incidence)``, each (num_beams,);
@@ -299,12 +302,36 @@ class SimLidar:
         gid[~hit] = -1
         ranges = np.where(hit, self._dist, np.inf)
         cos_inc = np.where(hit, np.abs(np.einsum("ij,ij->i", dirs, self._normal)), 0.0)
+        if self.occluders:
+            origin = d.site_xpos[self._site]
+            ranges, gid, cos_inc = self._occlude(origin, dirs, ranges, gid, cos_inc)
+        return ranges, gid, cos_inc
+
+    def _occlude(
+        self, origin: Array, dirs: Array, ranges: Array, gid: Array, cos_inc: Array
+    ) -> tuple[Array, Array, Array]:
+        """Cut beams at the vertical cylinders of :attr:`occluders` (people, carts): a plain
+        surface (no retroreflection) wherever a cylinder is nearer than the first hit."""
+        ranges, gid, cos_inc = ranges.copy(), gid.copy(), cos_inc.copy()
+        gid_surface = -2  # hit, not a retroreflector (index -2 is never a retroreflector)
+        dxy = dirs[:, :2]
+        n2 = np.maximum(np.einsum("ij,ij->i", dxy, dxy), 1e-12)
+        for cx, cy, rad in self.occluders:
+            oc = np.array([cx - origin[0], cy - origin[1]])
+            b = dxy @ oc
+            disc = b * b - n2 * (oc @ oc - rad * rad)
+            ok = disc >= 0
+            t = np.where(ok, (b - np.sqrt(np.maximum(disc, 0.0))) / n2, np.inf)
+            nearer = ok & (t > 0) & (t < ranges)
+            ranges[nearer] = t[nearer]
+            gid[nearer] = gid_surface
+            cos_inc[nearer] = 1.0
         return ranges, gid, cos_inc
 
     def _intensities(self, ranges: Array, gid: Array, cos_inc: Array, noisy: bool) -> Array:
         n = self._noise
-        hit = gid >= 0
-        retro = self._retro[gid]  # gid -1 indexes the trailing False
+        hit = gid != -1  # -2: an occluder (a plain surface)
+        retro = self._retro[gid]  # gid -1 / -2 index the trailing False entries
         r = np.where(hit, ranges, 1.0)
         falloff = np.minimum(1.0, (_SURFACE_FALLOFF_RANGE / np.maximum(r, 1e-6)) ** 2)
         surface = n.surface_intensity * cos_inc * falloff

@@ -1,0 +1,113 @@
+"""``mmpa navigate --to SITE`` and ``mmpa map export``: localization and navigation in the twin."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from mmpa.errors import MMPAError
+
+__all__ = ["register"]
+
+console = Console()
+map_app = typer.Typer(help="Occupancy maps (ROS map_server format).", no_args_is_help=True)
+
+
+def navigate_cmd(
+    to: Annotated[str, typer.Option("--to", help="Goal site (e.g. 1, 2).")],
+    start: Annotated[str, typer.Option("--from", help="Start site.")] = "0",
+    method: Annotated[
+        str, typer.Option(help="amcl | enhanced | enhanced-paper | trilateration | tamcl | hector")
+    ] = "enhanced",
+    seed: Annotated[int, typer.Option(help="Robot instance / noise seed.")] = 0,
+    out: Annotated[Path | None, typer.Option(help="Write summary.json here.")] = None,
+    timeout: Annotated[float, typer.Option(help="Simulated seconds.")] = 120.0,
+) -> None:
+    """Drive the twin from a site to ``--to`` on the localization estimate; print the parking
+    error (truth vs goal) and the localization error (estimate vs truth) at the end."""
+    import numpy as np
+
+    from mmpa.localization.localizer import make_localizer
+    from mmpa.navigation.mission import (
+        NavigateConfig,
+        laser_pose2d,
+        navigate,
+        twin_map,
+        twin_nav_map,
+    )
+    from mmpa.navigation.planner import CostMap
+    from mmpa.sim.error_model import ErrorModelConfig
+    from mmpa.sim.world import SimWorld
+
+    try:
+        with SimWorld(errors=ErrorModelConfig(seed=seed), site=start) as world:
+            goal = world.scene.site(to).pose2d
+            grid = twin_map(world)
+            loc = make_localizer(method, grid, laser_pose2d(world), np.random.default_rng(seed))
+            loc.initialize(world.scene.site(start).pose2d)
+            with console.status(f"navigating site {start} -> site {to} ({method})"):
+                cm = CostMap(twin_nav_map(world))
+                res = navigate(world, loc, grid, goal, NavigateConfig(timeout=timeout), costmap=cm)
+    except MMPAError as e:
+        console.print(f"[bold red]error:[/] {e}")
+        raise typer.Exit(2) from None
+    e = res.localization_error
+    summary = {
+        "from": start,
+        "to": to,
+        "method": method,
+        "reached": res.reached,
+        "sim_seconds": round(res.sim_time, 2),
+        "parking_error_xy_mm": round(1000 * res.parking_error_xy, 2),
+        "parking_error_yaw_deg": round(float(np.rad2deg(res.parking_error_yaw)), 3),
+        "localization_error_xy_mm": round(1000 * float(np.hypot(e[0], e[1])), 2),
+        "localization_error_yaw_deg": round(float(np.rad2deg(abs(e[2]))), 3),
+    }
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    t = Table(title=f"mmpa navigate --to {to}", show_header=False)
+    for k, v in summary.items():
+        t.add_row(k, str(v))
+    console.print(t)
+    if not res.reached:
+        console.print("[yellow]the base did not settle within tolerance before the timeout[/]")
+        raise typer.Exit(1)
+
+
+@map_app.command("export")
+def map_export(
+    out: Annotated[Path, typer.Option(help="Map YAML to write (PGM beside it).")] = Path(
+        "runs/map/map.yaml"
+    ),
+    resolution: Annotated[float, typer.Option(help="m per cell.")] = 0.05,
+    seed: Annotated[int, typer.Option(help="Robot instance seed (reflector survey error).")] = 0,
+) -> None:
+    """Write the twin's occupancy map with the surveyed reflector landmarks (map_server YAML)."""
+    from mmpa.localization.maps import save_map
+    from mmpa.navigation.mission import twin_map
+    from mmpa.sim.error_model import ErrorModelConfig
+    from mmpa.sim.world import SimWorld
+
+    try:
+        with SimWorld(errors=ErrorModelConfig(seed=seed)) as world:
+            grid = twin_map(world, resolution)
+        path = save_map(grid, out)
+    except MMPAError as e:
+        console.print(f"[bold red]error:[/] {e}")
+        raise typer.Exit(2) from None
+    console.print(
+        f"wrote {path} and {path.with_suffix('.pgm').name}: {grid.width} x {grid.height} cells, "
+        f"{len(grid.reflectors)} reflectors"
+    )
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``navigate`` and ``map`` to the main app."""
+    app.command("navigate")(navigate_cmd)
+    app.add_typer(map_app, name="map")

@@ -1,0 +1,297 @@
+"""Paper 001 Table 2 / Fig. 9: localization accuracy at the target after driving there.
+
+Each trial: the robot starts at a random pose in the corridor, is told a rough initial pose
+(truth + N(0, ``init_sigma_xy``) per axis, N(0, ``init_sigma_theta``)), and navigates to the
+target site in the lobby (A* + pure pursuit + final approach) steering on the method's OWN
+estimate. At the end we compare the estimate with the truth (the paper's position error,
+success = error < 12 mm) and also report the parking error (truth vs goal).
+
+Second part (``kidnap_trials``): kidnapped-robot recovery. The robot, well localized at the
+target, is carried to another site without the localizer knowing; it then turns slowly on the
+spot and we measure the time until the estimate is within 5 cm of the truth again.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
+from mmpa.geometry import wrap_angle
+from mmpa.localization.amcl import AMCLConfig
+from mmpa.localization.localizer import METHODS, make_localizer
+from mmpa.navigation.mission import (
+    NavigateConfig,
+    laser_pose2d,
+    navigate,
+    twin_map,
+    twin_nav_map,
+)
+from mmpa.navigation.planner import CostMap
+from mmpa.sim.error_model import ErrorModelConfig
+from mmpa.sim.world import SimWorld
+
+PAPER = "paper 001 (Zhou et al. 2020) §4.3.1, Table 2 and Fig. 9"
+
+PAPER_TABLE2 = {
+    "amcl": {"x": 3.91, "y": 3.32, "pos": 5.14, "theta": 0.027, "success": 0.20},
+    "hector": {"x": 4.63, "y": 3.84, "pos": 6.12, "theta": 0.032, "success": 0.35},
+    "enhanced": {"x": 0.82, "y": 0.73, "pos": 1.09, "theta": 0.017, "success": 0.90},
+}
+LABELS = {
+    "amcl": "AMCL [5]",
+    "hector": "Hector-SLAM [35]",
+    "enhanced": "Ours (enhanced AMCL)",
+    "enhanced-paper": "Ours, Algorithm 1 as printed",
+    "trilateration": "Trilateration only",
+    "tamcl": "T-AMCL",
+}
+
+
+class Config(BaseModel):
+    model_config = ConfigDict(extra="forbid", coerce_numbers_to_str=True)
+
+    seed: int = 0
+    trials: int | None = None  # paper: 20 per method
+    methods: list[str] = Field(
+        default_factory=lambda: ["amcl", "hector", "enhanced", "enhanced-paper"]
+    )
+    goal_site: str = "1"
+    corridor_x: tuple[float, float] = (-10.5, -4.0)
+    corridor_y: tuple[float, float] = (0.75, 1.65)
+    start_clearance: float = Field(0.55, gt=0)  # m from obstacles (circumscribed radius 0.48)
+    init_sigma_xy: float = Field(0.10, ge=0)
+    init_sigma_theta: float = Field(0.05, ge=0)
+    success_threshold: float = Field(0.012, gt=0)  # m (paper: 12 mm)
+    resolution: float = Field(0.05, gt=0)
+    navigate: NavigateConfig = NavigateConfig(scan_rate=5.0, timeout=150.0)
+    kidnap_trials: int = Field(3, ge=0)
+    kidnap_site: str = "2"
+    kidnap_duration: float = Field(30.0, gt=0)
+    kidnap_amcl: AMCLConfig = AMCLConfig(recovery_alpha_slow=0.001, recovery_alpha_fast=0.1)
+
+
+def _trial(cfg: Config, k: int, method: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    rng = np.random.default_rng([cfg.seed, k])
+    with SimWorld(errors=ErrorModelConfig(seed=cfg.seed), site="0", episode=k) as world:
+        nav = CostMap(twin_nav_map(world, cfg.resolution))
+        for _ in range(1000):  # a start where the whole footprint is clear of obstacles
+            start = np.array(
+                [
+                    rng.uniform(*cfg.corridor_x),
+                    rng.uniform(*cfg.corridor_y),
+                    rng.uniform(-np.pi, np.pi),
+                ]
+            )
+            c, r = nav.grid.world_to_cell(start[:2])
+            if nav.dist[r, c] >= cfg.start_clearance:
+                break
+        guess = start + np.array(
+            [*rng.normal(0, cfg.init_sigma_xy, 2), rng.normal(0, cfg.init_sigma_theta)]
+        )
+        world.reset(pose2d=start)
+        grid = twin_map(world, cfg.resolution)
+        loc = make_localizer(
+            method, grid, laser_pose2d(world), np.random.default_rng([cfg.seed, k, 7])
+        )
+        loc.initialize(guess)
+        goal = world.scene.site(cfg.goal_site).pose2d
+        t0 = time.perf_counter()
+        res = navigate(
+            world,
+            loc,
+            grid,
+            goal,
+            cfg.navigate,
+            costmap=CostMap(twin_nav_map(world, cfg.resolution)),
+        )
+        wall = time.perf_counter() - t0
+    e = res.localization_error
+    exy = float(np.hypot(e[0], e[1]))
+    row = {
+        "trial": k,
+        "method": method,
+        "start_x": start[0],
+        "start_y": start[1],
+        "start_theta": start[2],
+        "err_x_m": abs(float(e[0])),
+        "err_y_m": abs(float(e[1])),
+        "err_pos_m": exy,
+        "err_theta_rad": abs(float(e[2])),
+        "success": bool(exy < cfg.success_threshold),
+        "parking_err_m": res.parking_error_xy,
+        "parking_err_yaw_rad": res.parking_error_yaw,
+        "reached": res.reached,
+        "sim_seconds": res.sim_time,
+        "wall_seconds": wall,
+    }
+    return row, res.trace
+
+
+def _kidnap(cfg: Config, k: int, method: str) -> dict[str, Any]:
+    """Localize at the goal site, carry the robot to ``kidnap_site``, turn slowly; time to
+    recover (estimate within 5 cm / 0.05 rad of the truth for 1 s)."""
+    with SimWorld(errors=ErrorModelConfig(seed=cfg.seed), site=cfg.goal_site, episode=100 + k) as w:
+        grid = twin_map(w, cfg.resolution)
+        amcl = cfg.kidnap_amcl
+        loc = make_localizer(
+            method, grid, laser_pose2d(w), np.random.default_rng([cfg.seed, k, 9]), amcl=amcl
+        )
+        loc.initialize(w.truth.base_pose2d())
+        dt = 1.0 / cfg.navigate.scan_rate
+        for _ in range(5):
+            w.step(dt)
+            loc.update(w.odometry.odometry().pose, w.lidar.scan(), force=True)
+        w.reset(cfg.kidnap_site)  # kidnapped: the localizer is not told
+        t0 = w.time
+        good_since: float | None = None
+        recovered = float("nan")
+        while w.time - t0 < cfg.kidnap_duration:
+            w.base.set_velocity(0.0, 0.25)
+            w.step(dt)
+            odom = w.odometry.odometry().pose
+            loc.update(odom, w.lidar.scan())
+            est, tru = loc.pose_at(odom), w.truth.base_pose2d()
+            ok = np.hypot(*(est[:2] - tru[:2])) < 0.05 and abs(wrap_angle(est[2] - tru[2])) < 0.05
+            if ok:
+                good_since = w.time if good_since is None else good_since
+                if w.time - good_since >= 1.0:
+                    recovered = good_since - t0
+                    break
+            else:
+                good_since = None
+    return {"kidnap_trial": k, "method": method, "recovery_s": recovered}
+
+
+def run(cfg: Config, ctx: Context) -> Outcome:
+    for m in cfg.methods:
+        if m not in METHODS:
+            raise ValueError(f"unknown method {m!r}; valid: {', '.join(METHODS)}")
+    n = cfg.trials if cfg.trials is not None else 20
+    rows: list[dict[str, Any]] = []
+    traces: dict[str, dict[str, np.ndarray]] = {}
+    total = n * len(cfg.methods)
+    for k in range(n):
+        for m in cfg.methods:
+            row, trace = _trial(cfg, k, m)
+            rows.append(row)
+            if k == 0:
+                traces[m] = trace
+            ctx.progress("trials", len(rows) / total)
+    kid_rows = []
+    for k in range(cfg.kidnap_trials):
+        for m in cfg.methods:
+            kid_rows.append(_kidnap(cfg, k, m))
+        ctx.progress("kidnap", (k + 1) / max(cfg.kidnap_trials, 1))
+
+    summary: dict[str, Any] = {"trials_per_method": n, "methods": {}}
+    table = []
+    for m in cfg.methods:
+        r = [x for x in rows if x["method"] == m]
+        s = {
+            "err_x_cm": stats(100 * x["err_x_m"] for x in r)["mean"],
+            "err_y_cm": stats(100 * x["err_y_m"] for x in r)["mean"],
+            "err_pos_cm": stats(100 * x["err_pos_m"] for x in r)["mean"],
+            "err_pos_cm_max": stats(100 * x["err_pos_m"] for x in r)["max"],
+            "err_theta_rad": stats(x["err_theta_rad"] for x in r)["mean"],
+            "success": float(np.mean([x["success"] for x in r])),
+            "parking_err_cm": stats(100 * x["parking_err_m"] for x in r)["mean"],
+            "reached": float(np.mean([x["reached"] for x in r])),
+        }
+        kr = [x["recovery_s"] for x in kid_rows if x["method"] == m]
+        if kr:
+            s["kidnap_recovered"] = float(np.mean(np.isfinite(kr)))
+            s["kidnap_recovery_s_median"] = stats(kr)["median"]
+        summary["methods"][m] = s
+        p = PAPER_TABLE2.get(m)
+        table.append(
+            [
+                LABELS.get(m, m),
+                s["err_x_cm"],
+                s["err_y_cm"],
+                s["err_pos_cm"],
+                s["err_theta_rad"],
+                s["success"],
+                s["parking_err_cm"],
+                *(
+                    [p["x"], p["y"], p["pos"], p["theta"], p["success"]]
+                    if p
+                    else [float("nan")] * 5
+                ),
+            ]
+        )
+    figs = _plots(ctx, traces)
+    report = (
+        f"{n} runs per method, random corridor start, rough initial pose "
+        f"(sigma {cfg.init_sigma_xy * 100:.0f} cm / {cfg.init_sigma_theta:.2f} rad), target: site "
+        f"{cfg.goal_site}. Position error = final estimate vs truth (paper's measure); success = "
+        f"position error < {cfg.success_threshold * 1000:.0f} mm. Parking = truth vs goal.\n\n"
+        + markdown_table(
+            [
+                "method",
+                "x (cm)",
+                "y (cm)",
+                "position (cm)",
+                "theta (rad)",
+                "success",
+                "parking (cm)",
+                "paper x",
+                "paper y",
+                "paper position",
+                "paper theta",
+                "paper success",
+            ],
+            table,
+            digits=3,
+        )
+    )
+    if kid_rows:
+        report += "\n## Kidnapped robot\n\n" + markdown_table(
+            ["method", "recovered", "median recovery (s)"],
+            [
+                [
+                    LABELS.get(m, m),
+                    summary["methods"][m].get("kidnap_recovered", float("nan")),
+                    summary["methods"][m].get("kidnap_recovery_s_median", float("nan")),
+                ]
+                for m in cfg.methods
+            ],
+        )
+        report += (
+            f"\nCarried from site {cfg.goal_site} to site {cfg.kidnap_site} unannounced, then "
+            f"turning at 0.25 rad/s for up to {cfg.kidnap_duration:.0f} s; AMCL runs with "
+            "recovery_alpha_slow/fast = "
+            f"{cfg.kidnap_amcl.recovery_alpha_slow}/{cfg.kidnap_amcl.recovery_alpha_fast}.\n"
+        )
+    if figs:
+        report += "\n" + "\n".join(f"![{f}]({f})" for f in figs) + "\n"
+    return Outcome(rows + kid_rows, summary, report, figs)
+
+
+def _plots(ctx: Context, traces: dict[str, dict[str, np.ndarray]]) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not traces:
+        return []
+    fig, ax = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    for m, tr in traces.items():
+        e = tr["estimate"] - tr["truth"]
+        ax[0].plot(tr["t"], 100 * np.hypot(e[:, 0], e[:, 1]), label=LABELS.get(m, m))
+        ax[1].plot(tr["t"], np.abs(wrap_angle(e[:, 2])), label=LABELS.get(m, m))
+    ax[0].set_ylabel("position error (cm)")
+    ax[1].set_ylabel("yaw error (rad)")
+    ax[1].set_xlabel("time (s)")
+    ax[0].set_yscale("log")
+    ax[1].set_yscale("log")
+    ax[0].legend(fontsize=8)
+    ax[0].set_title("Fig. 9: error vs time, trial 0")
+    fig.tight_layout()
+    fig.savefig(ctx.out / "fig9_error_vs_time.png", dpi=100)
+    plt.close(fig)
+    return ["fig9_error_vs_time.png"]

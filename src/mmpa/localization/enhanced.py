@@ -1,0 +1,439 @@
+"""Reflector-enhanced AMCL: paper 001 Algorithm 1, eq. 3-8, on top of :class:`AMCL`.
+
+Per scan (Algorithm 1):
+
+1. ``R, M_bar = LaserReflectorIdentification(z_t, u_t, M)``: detect reflectors, identify them by
+   triangle matching, trilaterate ``mu_G`` (eq. 1-2) -> :class:`ReflectorObserver`.
+2. Fewer than three identified (``M_bar`` empty): plain AMCL (lines 4-10).
+3. Otherwise (lines 12-26): motion model; laser weight ``omega_t = omega_{t-1} p(z_t | x_t)``
+   (eq. 5, normalized); position weight ``d`` (eq. 3); orientation weight ``s`` (eq. 4);
+   fused ``omega_new = alpha s omega + beta d`` (eq. 6, alpha = 154, beta = 1), normalized;
+   resampling on ``omega_new`` (``ParticleGeneration``); then each particle is replaced, with
+   probability ``d`` if ``d > 0.01`` (eq. 8), by a new particle ``lambda Q + mu_G`` (eq. 7).
+
+Interpretations (the paper leaves them open):
+
+- eq. 3 uses ``(2 pi)^{-3/2} exp(-1/2 e^T e)`` with ``e = x - mu_G`` in m and rad (identity
+  covariance). ``position_metric="trilateration"`` (the default, our improvement) whitens ``e``
+  with the trilateration covariance (plus a floor), so the weight reflects how well ``mu_G``
+  is actually known; the normalizer stays ``(2 pi)^{-3/2}`` so eq. 8's 0.01 threshold keeps its
+  meaning (``e^T Sigma^-1 e < 3.7``).
+- eq. 4 averages, over the identified reflectors, a Gaussian of the difference between the
+  observed bearing ``phi_i`` and the bearing ``mu`` the particle predicts for that landmark,
+  with ``sigma = bearing_sigma``.
+- eq. 7 with ``lambda = 1`` (paper) spreads new particles by 1 m / 1 rad; the default
+  ``injection="trilateration"`` draws them from ``N(mu_G, Sigma)`` instead.
+- ``fusion="product"`` (default, our improvement): eq. 6's sum lets the ``alpha s omega`` term
+  outweigh ``beta d`` by two orders of magnitude, so the trilateration barely sharpens the
+  cloud; the product ``s omega d`` is the Bayes posterior of the three independent cues.
+  ``fusion="paper"`` is eq. 6 as printed.
+- eq. 8's probability always uses eq. 3 as printed (identity metric), so particles up to
+  ~1.9 m from ``mu_G`` can trigger an injection even with the sharper eq. 3 weight.
+- gating and kidnapping (improvement): a fix farther than ``kidnap_distance`` from every
+  particle is not fused; ``kidnap_fixes`` consecutive such fixes (from at least
+  ``kidnap_min_reflectors`` reflectors) re-seed the cloud at ``N(mu_G, Sigma)``.
+- partial tracking (improvement): with fewer than three identified reflectors, the ones
+  still detected are associated with landmarks through the current estimate (gate
+  ``track_gate``). Two or more give a pose by Gauss-Newton on their ranges and bearings,
+  used as ``mu_G``; a single one weights the particles by its range/bearing likelihood.
+- mixture proposal (improvement): before weighting, ``proposal_fraction`` of the predicted
+  particles are redrawn from ``N(mu_G, Sigma)``, so that a cloud spread by the motion model
+  (Nav2's alphas are 0.2) still holds particles where the fix is; without it the sharp
+  product weight lands on a handful of particles.
+- ``update_when_stationary``: reflector fixes also update the filter while the base stands
+  still (Nav2 waits for ``update_min_d``); the motion model then adds no noise, and the
+  injected particles keep the cloud from collapsing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from mmpa.geometry import Array
+from mmpa.localization.amcl import AMCL, AMCLConfig, PoseEstimate, _wrap
+from mmpa.localization.maps import OccupancyGrid
+from mmpa.localization.reflectors import (
+    DetectionConfig,
+    IdentifyConfig,
+    ReflectorDetections,
+    TriangleLibrary,
+    detect_reflectors,
+    identify_reflectors,
+)
+from mmpa.localization.trilateration import TrilaterationResult, trilaterate
+from mmpa.robot.interfaces import LaserScan
+
+__all__ = [
+    "EnhancedAMCL",
+    "EnhancedConfig",
+    "ObserverConfig",
+    "ReflectorFix",
+    "ReflectorObserver",
+    "orientation_weight",
+    "position_weight",
+]
+
+_EQ3_NORM = (2 * np.pi) ** -1.5
+
+
+class ObserverConfig(BaseModel):
+    """Detection, identification and trilateration settings."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    detection: DetectionConfig = DetectionConfig()
+    identify: IdentifyConfig = IdentifyConfig()
+    range_sigma_beam: float = Field(0.015, gt=0)  # m, lidar range noise per beam
+    range_sigma_floor: float = Field(0.004, ge=0)  # m, map error + fit bias
+    bearing_sigma_floor: float = Field(0.002, ge=0)  # rad
+    outlier_sigmas: float = Field(3.5, gt=0)  # drop reflectors with larger normalized residual
+    min_reflectors: int = Field(3, ge=3)
+
+
+@dataclass(frozen=True)
+class ReflectorFix:
+    """Identified reflectors (in ``base_link``) and the trilateration ``mu_G`` (eq. 1-2)."""
+
+    ids: np.ndarray  # (n,) landmark ids
+    ranges: Array  # (n,) m from base_link
+    bearings: Array  # (n,) rad in base_link
+    trilateration: TrilaterationResult
+    detected: int  # reflectors detected (identified or not)
+
+    @property
+    def pose(self) -> Array:
+        return self.trilateration.pose
+
+
+class ReflectorObserver:
+    """``LaserReflectorIdentification`` of Algorithm 1 plus eq. 1-2 with outlier rejection."""
+
+    def __init__(
+        self, landmarks: Array, laser_pose: Array, cfg: ObserverConfig | None = None
+    ) -> None:
+        self.cfg = cfg or ObserverConfig()
+        self.landmarks = np.asarray(landmarks, float).reshape(-1, 2)
+        self.library = TriangleLibrary(self.landmarks)
+        self.laser_pose = np.asarray(laser_pose, float).reshape(3)
+        self.last_detections: ReflectorDetections = ReflectorDetections.empty()
+        self.last_status = "none"
+
+    def observe(self, scan: LaserScan) -> ReflectorFix | None:
+        """The fix of this scan, or None if fewer than ``min_reflectors`` are identified."""
+        c = self.cfg
+        det = detect_reflectors(scan, c.detection).transformed(self.laser_pose)
+        self.last_detections = det
+        if len(det) < c.min_reflectors:
+            self.last_status = "too_few"
+            return None
+        ident = identify_reflectors(det.points, self.library, c.identify)
+        self.last_status = ident.status
+        keep = ident.ids >= 0
+        while keep.sum() >= c.min_reflectors:
+            k = np.flatnonzero(keep)
+            beams = np.maximum(det.beams[k], 1)
+            sr = c.range_sigma_floor + c.range_sigma_beam / np.sqrt(beams)
+            sb = c.bearing_sigma_floor + (c.detection.radius + 0.01) / (
+                det.ranges[k] * np.sqrt(beams)
+            )
+            try:
+                tri = trilaterate(
+                    self.landmarks[ident.ids[k]], det.ranges[k], det.bearings[k], sr, sb
+                )
+            except ValueError:
+                self.last_status = "degenerate"
+                return None
+            d = self.landmarks[ident.ids[k]] - tri.pose[:2]
+            res_r = (np.linalg.norm(d, axis=1) - det.ranges[k]) / sr
+            res_b = _wrap(np.arctan2(d[:, 1], d[:, 0]) - tri.pose[2] - det.bearings[k]) / sb
+            worst = int(np.argmax(np.maximum(np.abs(res_r), np.abs(res_b))))
+            if max(abs(res_r[worst]), abs(res_b[worst])) <= c.outlier_sigmas:
+                return ReflectorFix(ident.ids[k], det.ranges[k], det.bearings[k], tri, len(det))
+            keep[k[worst]] = False
+        self.last_status = "too_few_consistent"
+        return None
+
+
+class EnhancedConfig(BaseModel):
+    """Algorithm 1 coefficients. Paper values: ``alpha=154``, ``beta=1``, ``lambda=1``,
+    identity covariance in eq. 3 (``EnhancedConfig.paper()``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    amcl: AMCLConfig = AMCLConfig()
+    observer: ObserverConfig = ObserverConfig()
+    alpha: float = Field(154.0, ge=0)  # eq. 6
+    beta: float = Field(1.0, ge=0)  # eq. 6
+    bearing_sigma: float = Field(0.01, gt=0)  # rad, eq. 4 (sigma of the observation angle)
+    position_metric: Literal["identity", "trilateration"] = "trilateration"  # eq. 3
+    position_cov_floor: tuple[float, float, float] = (0.002**2, 0.002**2, 0.001**2)
+    injection: Literal["paper", "trilateration"] = "trilateration"  # eq. 7
+    injection_lambda: float = Field(1.0, gt=0)  # eq. 7 (paper: 1)
+    injection_threshold: float = Field(0.01, ge=0)  # eq. 8
+    update_when_stationary: bool = True
+    fusion: Literal["paper", "product"] = "product"  # eq. 6 as printed, or Bayes product
+    position_weight_floor: float = Field(1e-4, ge=0)  # product fusion: keeps far particles alive
+    kidnap_distance: float = Field(0.5, gt=0)  # m, fix farther than this from every particle
+    kidnap_fixes: int = Field(3, ge=0)  # consecutive such fixes re-seed the cloud; 0 = off
+    kidnap_min_reflectors: int = Field(4, ge=3)  # only redundant fixes count toward re-seeding
+    proposal_fraction: float = Field(0.1, ge=0, le=1)  # improvement: mixture proposal at mu_G
+    track_partial: bool = True  # use 1-2 reflectors (associated by the estimate) when < 3
+    track_gate: float = Field(0.5, gt=0)  # m (odometry heading drifts ~0.05 rad per turn)
+    track_pair_tol: float = Field(0.05, gt=0)  # m, detected vs map distance of tracked pairs
+    track_max_turn: float = Field(0.15, gt=0)  # rad, largest heading change of a tracked fix
+    track_sigma_range: float = Field(0.015, gt=0)  # m
+    track_sigma_bearing: float = Field(0.01, gt=0)  # rad
+
+    @classmethod
+    def paper(cls) -> EnhancedConfig:
+        """Algorithm 1 exactly as printed (identity eq. 3, lambda = 1, Nav2 updates only)."""
+        return cls(
+            position_metric="identity",
+            injection="paper",
+            update_when_stationary=False,
+            fusion="paper",
+            kidnap_fixes=0,
+            track_partial=False,
+            proposal_fraction=0.0,
+        )
+
+
+def position_weight(particles: Array, mu: Array, cov: Array | None = None) -> Array:
+    """Eq. 3: ``d = (2 pi)^{-3/2} exp(-1/2 e^T S^-1 e)``, ``e = x - mu_G`` (heading wrapped);
+    ``S = I`` as printed unless ``cov`` (3, 3) is given. Returns (N,)."""
+    e = particles - mu
+    e[:, 2] = _wrap(e[:, 2])
+    if cov is None:
+        m2 = np.einsum("ij,ij->i", e, e)
+    else:
+        m2 = np.einsum("ij,jk,ik->i", e, np.linalg.inv(cov), e)
+    return _EQ3_NORM * np.exp(-0.5 * m2)
+
+
+def orientation_weight(particles: Array, landmarks: Array, bearings: Array, sigma: float) -> Array:
+    """Eq. 4: ``s = (1/n) sum_i N(phi_i; mu_i, sigma)`` with ``mu_i`` the bearing of landmark
+    ``i`` predicted from each particle (``base_link`` frame). Returns (N,)."""
+    dx = landmarks[None, :, 0] - particles[:, 0:1]
+    dy = landmarks[None, :, 1] - particles[:, 1:2]
+    mu = np.arctan2(dy, dx) - particles[:, 2:3]
+    err = _wrap(bearings[None, :] - mu)
+    g = np.exp(-(err**2) / (2 * sigma**2)) / (sigma * np.sqrt(2 * np.pi))
+    return g.mean(axis=1)
+
+
+class EnhancedAMCL(AMCL):
+    """AMCL with Algorithm 1 (see the module docstring)."""
+
+    name = "enhanced"
+
+    def __init__(
+        self,
+        grid: OccupancyGrid,
+        laser_pose: Array,
+        cfg: EnhancedConfig | None = None,
+        rng: np.random.Generator | None = None,
+        landmarks: Array | None = None,
+    ) -> None:
+        self.ecfg = cfg or EnhancedConfig()
+        super().__init__(grid, laser_pose, self.ecfg.amcl, rng)
+        lm = grid.reflectors if landmarks is None else landmarks
+        obs_cfg = self.ecfg.observer
+        if grid.reflector_radius > 0 and landmarks is None:
+            det = obs_cfg.detection.model_copy(update={"radius": grid.reflector_radius})
+            obs_cfg = obs_cfg.model_copy(update={"detection": det})
+        self.observer = ReflectorObserver(lm, laser_pose, obs_cfg)
+        self.last_fix: ReflectorFix | None = None
+        self._far_fixes = 0
+        self.kidnap_resets = 0
+
+    def _gate(self, fix: ReflectorFix) -> str:
+        """``"ok"``, ``"outlier"`` or ``"reseed"`` for a fix (improvement). A fix farther than
+        ``kidnap_distance`` from every particle is not fused (a wrong identification must not
+        drag the cloud away); ``kidnap_fixes`` consecutive such fixes from at least
+        ``kidnap_min_reflectors`` reflectors mean the robot was carried off: re-seed the cloud
+        at ``N(mu_G, Sigma)`` (eq. 8 alone cannot reach a cloud that is lost)."""
+        e = self.ecfg
+        if e.kidnap_fixes <= 0:
+            return "ok"
+        dxy = np.hypot(*(self.particles[:, :2] - fix.pose[:2]).T)
+        if float(dxy.min()) <= e.kidnap_distance:
+            self._far_fixes = 0
+            return "ok"
+        if fix.trilateration.n >= e.kidnap_min_reflectors:
+            self._far_fixes += 1
+        if self._far_fixes >= e.kidnap_fixes:
+            self._far_fixes = 0
+            return "reseed"
+        return "outlier"
+
+    def _associate(self, pose: Array) -> tuple[np.ndarray, np.ndarray]:
+        """Detections (base_link) -> landmark ids by proximity to where ``pose`` predicts the
+        landmarks; returns (detection indices, landmark ids) within ``track_gate``."""
+        det = self.observer.last_detections
+        L = self.observer.landmarks
+        c, s_ = np.cos(pose[2]), np.sin(pose[2])
+        pm = det.points @ np.array([[c, s_], [-s_, c]]) + pose[:2]
+        d = np.linalg.norm(pm[:, None, :] - L[None, :, :], axis=2)
+        nn = d.argmin(axis=1)
+        ok = d[np.arange(len(pm)), nn] <= self.ecfg.track_gate
+        di, li = np.flatnonzero(ok), nn[ok]
+        _, first = np.unique(li, return_index=True)  # one detection per landmark
+        return di[first], li[first]
+
+    def _tracked_fix(self, odom_pose: Array) -> ReflectorFix | None:
+        """Two or more reflectors associated by the estimate: a pose from their ranges and
+        bearings (Gauss-Newton from the estimate), used like a trilateration fix."""
+        pose = self.pose_at(odom_pose)
+        di, li = self._associate(pose)
+        if len(di) < 2:
+            return None
+        det = self.observer.last_detections
+        c = self.observer.cfg
+        # rigid check (a two-point "triangle match"): detected and map distances must agree
+        P, L = det.points[di], self.observer.landmarks[li]
+        i, j = np.triu_indices(len(di), 1)
+        dd = np.abs(np.linalg.norm(P[i] - P[j], axis=1) - np.linalg.norm(L[i] - L[j], axis=1))
+        if dd.max() > self.ecfg.track_pair_tol:
+            return None
+        beams = np.maximum(det.beams[di], 1)
+        sr = c.range_sigma_floor + c.range_sigma_beam / np.sqrt(beams)
+        sb = c.bearing_sigma_floor + (c.detection.radius + 0.01) / (det.ranges[di] * np.sqrt(beams))
+        try:
+            tri = trilaterate(
+                self.observer.landmarks[li], det.ranges[di], det.bearings[di], sr, sb, initial=pose
+            )
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+        if not np.all(np.isfinite(tri.pose)) or np.hypot(*(tri.pose[:2] - pose[:2])) > 0.3:
+            return None
+        if abs(float(_wrap(tri.pose[2] - pose[2]))) > self.ecfg.track_max_turn:
+            return None
+        # consistency: every reflector within outlier_sigmas of the refined pose
+        d = self.observer.landmarks[li] - tri.pose[:2]
+        res_r = (np.linalg.norm(d, axis=1) - det.ranges[di]) / sr
+        res_b = _wrap(np.arctan2(d[:, 1], d[:, 0]) - tri.pose[2] - det.bearings[di]) / sb
+        if max(np.abs(res_r).max(), np.abs(res_b).max()) > c.outlier_sigmas:
+            return None
+        return ReflectorFix(li, det.ranges[di], det.bearings[di], tri, len(det))
+
+    def _partial_update(
+        self, odom_pose: Array, scan: LaserScan, force: bool
+    ) -> PoseEstimate | None:
+        """Improvement for a single reflector in sight: associated with its landmark through
+        the current estimate, its range and bearing weight the particles together with the
+        laser (no fix, no injection)."""
+        e = self.ecfg
+        if not (force or e.update_when_stationary or self._should_update(odom_pose)):
+            return None
+        di, li = self._associate(self.pose_at(odom_pose))  # before predict: moved by odometry
+        if len(di) == 0:
+            return None
+        self.predict(odom_pose)
+        det = self.observer.last_detections
+        L = self.observer.landmarks[li]
+        P = self.particles
+        dx = L[None, :, 0] - P[:, 0:1]
+        dy = L[None, :, 1] - P[:, 1:2]
+        rng_err = np.hypot(dx, dy) - det.ranges[di][None, :]
+        brg_err = _wrap(np.arctan2(dy, dx) - P[:, 2:3] - det.bearings[di][None, :])
+        ll = np.exp(
+            -0.5 * ((rng_err / e.track_sigma_range) ** 2 + (brg_err / e.track_sigma_bearing) ** 2)
+        ).prod(axis=1)
+        p = self.measurement_weights(P, scan)
+        self._apply_weights(p)
+        w = self.weights * (ll + 1e-12)
+        total = float(w.sum())
+        if not np.isfinite(total) or total <= 0:
+            return None
+        self.weights = w / total
+        self.resample(self.weights)
+        self._odom_last_update = odom_pose.copy()
+        self._force_update = False
+        self._estimate = None
+        est = self._current(updated=True)
+        return PoseEstimate(est.pose, est.cov, est.n_particles, True, "enhanced-partial")
+
+    def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
+        fix = self.observer.observe(scan)
+        self.last_fix = fix
+        if fix is None and self.ecfg.track_partial and len(self.observer.last_detections) > 0:
+            odom_arr = np.asarray(odom_pose, float).reshape(3)
+            fix = self._tracked_fix(odom_arr)
+            if fix is None:
+                est = self._partial_update(odom_arr, scan, force)
+                if est is not None:
+                    return est
+        if fix is None:
+            # Algorithm 1 lines 4-10: original AMCL
+            est = super().update(odom_pose, scan, force)
+            return PoseEstimate(est.pose, est.cov, est.n_particles, est.updated, "amcl")
+        odom_pose = np.asarray(odom_pose, float).reshape(3)
+        if not (force or self.ecfg.update_when_stationary or self._should_update(odom_pose)):
+            return self._current(updated=False)
+        e = self.ecfg
+        gate = self._gate(fix)
+        if gate == "outlier":
+            self.last_fix = None
+            est = AMCL.update(self, odom_pose, scan, force=True)
+            return PoseEstimate(est.pose, est.cov, est.n_particles, est.updated, "amcl")
+        self.predict(odom_pose)  # line 12
+        if gate == "reseed":
+            self.particles = self.rng.multivariate_normal(
+                fix.pose, fix.trilateration.cov + np.diag(e.position_cov_floor), len(self.particles)
+            )
+            self.particles[:, 2] = _wrap(self.particles[:, 2])
+            self.weights = np.full(len(self.particles), 1.0 / len(self.particles))
+            self.kidnap_resets += 1
+        mu = fix.pose
+        cov = None
+        if e.position_metric == "trilateration":
+            cov = fix.trilateration.cov + np.diag(e.position_cov_floor)
+        if e.proposal_fraction > 0:  # mixture proposal: some predicted particles drawn at mu_G
+            k = round(e.proposal_fraction * len(self.particles))
+            idx = self.rng.choice(len(self.particles), k, replace=False)
+            Lc = np.linalg.cholesky(cov if cov is not None else np.eye(3))
+            self.particles[idx] = self.rng.standard_normal((k, 3)) @ Lc.T + mu
+            self.particles[idx, 2] = _wrap(self.particles[idx, 2])
+        p = self.measurement_weights(self.particles, scan)
+        omega = self.weights * p  # eq. 5
+        omega = omega / max(float(omega.sum()), 1e-300)
+        self._apply_weights(p)  # keeps w_slow / w_fast bookkeeping of AMCL
+        d = position_weight(self.particles, mu, cov)  # eq. 3 (line 14)
+        s = orientation_weight(
+            self.particles, self.observer.landmarks[fix.ids], fix.bearings, e.bearing_sigma
+        )  # eq. 4 (line 15)
+        if e.fusion == "paper":
+            w_new = e.alpha * s * omega + e.beta * d  # eq. 6 (line 16)
+        else:  # improvement: all three likelihoods multiplied (d floored for robustness)
+            w_new = s * omega * (d + e.position_weight_floor * _EQ3_NORM)
+        total = float(w_new.sum())
+        if not np.isfinite(total) or total <= 0:
+            w_new = np.full(len(w_new), 1.0 / len(w_new))
+        else:
+            w_new = w_new / total  # line 19
+        self.weights = w_new
+        self.resample(w_new)  # ParticleGeneration(omega_new)
+        # lines 20-26: inject new particles around mu_G with probability d (eq. 8)
+        # eq. 8 on eq. 3 as printed (identity metric): particles within ~1.9 m / rad of mu_G
+        d_new = position_weight(self.particles, mu, None)
+        prob = np.where(d_new > e.injection_threshold, d_new, 0.0)
+        inject = self.rng.uniform(size=len(prob)) <= prob
+        k = int(inject.sum())
+        if k:
+            q = self.rng.standard_normal((k, 3))
+            if e.injection == "paper":
+                new = e.injection_lambda * q + mu  # eq. 7
+            else:
+                Lc = np.linalg.cholesky(cov if cov is not None else np.eye(3))
+                new = q @ Lc.T + mu
+            new[:, 2] = _wrap(new[:, 2])
+            self.particles[inject] = new
+        self._odom_last_update = odom_pose.copy()
+        self._force_update = False
+        self._estimate = None
+        est = self._current(updated=True)
+        return PoseEstimate(est.pose, est.cov, est.n_particles, True, "enhanced")

@@ -1,0 +1,340 @@
+"""Laser-reflector detection and identification by triangle matching (paper 001 §3.1.1-3.1.2).
+
+Detection: beams with intensity above a threshold are grouped into clusters of adjacent beams
+(the scan wraps around at +-pi for a 360 deg lidar); each cluster's hit points are fitted with a
+circle of the known reflector radius (Gauss-Newton), which gives the reflector CENTER, not the
+tape surface, as range ``r`` and bearing ``phi`` from the sensor.
+
+Template library ``M`` (§3.1.1, Fig. 1b): every triangle of three landmarks, with side lengths
+``l1 >= l2 >= l3`` and vertex ids ordered as in §3.1.2 (``l1 = |AB|``, ``l2 = |AC|``,
+``l3 = |BC|``), sorted by the longest side. Lookup (§3.1.2): binary search on ``l1``, then
+filter on ``l2`` and ``l3`` within a tolerance.
+
+Identification: every detected triangle is matched in ``M``; each match with a well-defined
+vertex order proposes a rigid transform (detections -> map), scored by how many detections land
+on a landmark. The best hypothesis wins only if it explains at least three detections and no
+other hypothesis with a different pose explains as many (symmetric layouts, mirror triangles):
+otherwise nothing is identified and the caller falls back to plain AMCL. Never a confident wrong
+identification.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from mmpa.errors import InvalidInputError
+from mmpa.geometry import Array
+from mmpa.robot.interfaces import LaserScan
+
+__all__ = [
+    "DetectionConfig",
+    "Identification",
+    "IdentifyConfig",
+    "ReflectorDetections",
+    "TriangleLibrary",
+    "detect_reflectors",
+    "identify_reflectors",
+    "rigid_fit_2d",
+]
+
+
+class DetectionConfig(BaseModel):
+    """Reflector detection parameters (m, rad, intensity units of the scan)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    intensity_threshold: float = Field(1000.0, gt=0)
+    radius: float = Field(0.04, ge=0)  # reflector radius (scene YAML); 0 = flat tape
+    max_gap_beams: int = Field(2, ge=1)  # beams between returns of one cluster
+    max_range_jump: float = Field(0.15, gt=0)  # m, between adjacent beams of one cluster
+    min_beams: int = Field(1, ge=1)
+    max_width: float = Field(0.3, gt=0)  # m, wider clusters are not reflectors (glare, walls)
+
+
+@dataclass(frozen=True)
+class ReflectorDetections:
+    """Detected reflector centers in the SENSOR frame.
+
+    ``ranges`` (n,) m and ``bearings`` (n,) rad from the sensor origin; ``points`` (n, 2) m;
+    ``beams`` (n,) number of returns per reflector (more beams, better center).
+    """
+
+    ranges: Array
+    bearings: Array
+    points: Array
+    beams: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.ranges.shape[0])
+
+    def transformed(self, pose: Array) -> ReflectorDetections:
+        """The same detections seen from a frame in which the sensor sits at planar ``pose``
+        ``[x, y, theta]`` (e.g. ``base_link`` given the lidar mount)."""
+        x, y, th = np.asarray(pose, float)
+        c, s = np.cos(th), np.sin(th)
+        p = self.points @ np.array([[c, s], [-s, c]]) + np.array([x, y])
+        return ReflectorDetections(
+            np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]), p, self.beams
+        )
+
+    @staticmethod
+    def empty() -> ReflectorDetections:
+        z = np.zeros(0)
+        return ReflectorDetections(z, z, np.zeros((0, 2)), np.zeros(0, dtype=int))
+
+
+def _check_scan(scan: LaserScan) -> tuple[Array, Array]:
+    r = np.asarray(scan.ranges, float)
+    inten = np.asarray(scan.intensities, float)
+    if inten.shape != r.shape or inten.size == 0:
+        raise InvalidInputError(
+            "reflector detection needs scan intensities (one per beam); this scan has "
+            f"{inten.size} intensities for {r.size} ranges"
+        )
+    return r, inten
+
+
+def _fit_radial(pts: Array, R: float, u: Array, D0: float, iters: int = 8) -> float:
+    """Distance ``D`` of a circle of radius ``R`` centered at ``D u`` (``u`` the cluster's mean
+    bearing, which is unbiased for a symmetric cluster) that best fits the hit points ``pts``
+    (k, 2): Newton on ``sum (|p - D u| - R)^2``. More stable than a free 2D center fit when a
+    reflector spans only a few beams."""
+    D = D0
+    if R <= 0:
+        return float(np.mean(pts @ u))
+    for _ in range(iters):
+        d = D * u - pts
+        n = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
+        J = (d @ u) / n
+        step = float(J @ (n - R)) / max(float(J @ J), 1e-12)
+        D -= step
+        if abs(step) < 1e-7:
+            break
+    return float(D)
+
+
+def _fit_circle(pts: Array, R: float, c0: Array, iters: int = 8) -> Array:
+    """Center of a circle of known radius ``R`` through points ``pts`` (k, 2), Gauss-Newton
+    on ``sum (|p - c| - R)^2`` starting from ``c0``. With one point it returns ``c0``."""
+    c = c0.copy()
+    if len(pts) < 2 or R <= 0:
+        return c
+    for _ in range(iters):
+        d = c - pts
+        n = np.linalg.norm(d, axis=1)
+        n = np.maximum(n, 1e-9)
+        res = n - R
+        J = d / n[:, None]
+        H = J.T @ J
+        if np.linalg.cond(H) > 1e8:  # all points on a line through c: radial only
+            break
+        step = np.linalg.solve(H, J.T @ res)
+        c = c - step
+        if np.linalg.norm(step) < 1e-7:
+            break
+    return c
+
+
+def detect_reflectors(scan: LaserScan, cfg: DetectionConfig | None = None) -> ReflectorDetections:
+    """Reflector centers from the high-intensity returns of ``scan`` (sensor frame).
+
+    Beams with NaN/inf or ranges outside ``[range_min, range_max]`` are ignored. Raises
+    :class:`InvalidInputError` if the scan carries no intensities.
+    """
+    cfg = cfg or DetectionConfig()
+    r, inten = _check_scan(scan)
+    a = scan.angles
+    ok = scan.valid() & np.isfinite(inten) & (inten >= cfg.intensity_threshold)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return ReflectorDetections.empty()
+    n = r.shape[0]
+    full_circle = (n * scan.angle_increment) >= 2 * np.pi - 1.5 * scan.angle_increment
+    # split where the beam gap or the range jump is too large
+    gaps = np.diff(idx) > cfg.max_gap_beams
+    jumps = np.abs(np.diff(r[idx])) > cfg.max_range_jump
+    starts = np.concatenate([[0], np.flatnonzero(gaps | jumps) + 1])
+    clusters = [idx[s:e] for s, e in zip(starts, [*starts[1:], idx.size], strict=True)]
+    if full_circle and len(clusters) > 1:
+        first, last = clusters[0], clusters[-1]
+        wrap_gap = first[0] + n - last[-1]
+        if wrap_gap <= cfg.max_gap_beams and abs(r[first[0]] - r[last[-1]]) <= cfg.max_range_jump:
+            clusters = [np.concatenate([last, first]), *clusters[1:-1]]
+    rng_out, brg, pts, beams = [], [], [], []
+    for cl in clusters:
+        if cl.size < cfg.min_beams:
+            continue
+        p = np.column_stack([r[cl] * np.cos(a[cl]), r[cl] * np.sin(a[cl])])
+        if np.linalg.norm(p[0] - p[-1]) > cfg.max_width:
+            continue
+        bearing = float(np.angle(np.exp(1j * a[cl]).mean()))
+        rr = float(np.mean(r[cl]))
+        u = np.array([np.cos(bearing), np.sin(bearing)])
+        D = _fit_radial(p, cfg.radius, u, rr + cfg.radius)
+        # a degenerate fit (glare, too few points) falls back to the mean hit plus the radius
+        if not np.isfinite(D) or abs(D - rr - cfg.radius) > cfg.radius:
+            D = rr + cfg.radius
+        c = D * u
+        rng_out.append(float(np.hypot(*c)))
+        brg.append(float(np.arctan2(c[1], c[0])))
+        pts.append(c)
+        beams.append(cl.size)
+    if not pts:
+        return ReflectorDetections.empty()
+    return ReflectorDetections(
+        np.array(rng_out), np.array(brg), np.array(pts), np.array(beams, dtype=int)
+    )
+
+
+# --- template library --------------------------------------------------------------------------
+
+
+class TriangleLibrary:
+    """The matching template library ``M`` of §3.1.1.
+
+    ``sides`` (T, 3) ``l1 >= l2 >= l3`` (m), ``ids`` (T, 3) landmark ids of vertices A, B, C with
+    ``l1 = |AB|``, ``l2 = |AC|``, ``l3 = |BC|``; rows sorted by ``l1``.
+    """
+
+    def __init__(self, landmarks: Array) -> None:
+        L = np.asarray(landmarks, float)
+        if L.ndim != 2 or L.shape[1] != 2 or not np.all(np.isfinite(L)):
+            raise InvalidInputError(f"landmarks must be finite (N, 2), got shape {L.shape}")
+        self.landmarks = L
+        tri = np.array(list(combinations(range(len(L)), 3)), dtype=int).reshape(-1, 3)
+        if len(tri) == 0:
+            self.sides = np.zeros((0, 3))
+            self.ids = np.zeros((0, 3), dtype=int)
+            return
+        sides, ids = _order_triangles(L, tri)
+        order = np.argsort(sides[:, 0], kind="stable")
+        self.sides, self.ids = sides[order], ids[order]
+
+    def __len__(self) -> int:
+        return int(self.sides.shape[0])
+
+    def lookup(self, sides: Array, tol: float) -> np.ndarray:
+        """Indices of library triangles whose three sides match ``sides`` = (l1, l2, l3)
+        (sorted, descending) within ``tol`` m: binary search on ``l1``, then ``l2``, ``l3``."""
+        lo = np.searchsorted(self.sides[:, 0], sides[0] - tol, "left")
+        hi = np.searchsorted(self.sides[:, 0], sides[0] + tol, "right")
+        cand = np.arange(lo, hi)
+        ok = (np.abs(self.sides[cand, 1] - sides[1]) <= tol) & (
+            np.abs(self.sides[cand, 2] - sides[2]) <= tol
+        )
+        return cand[ok]
+
+
+def _order_triangles(P: Array, tri: np.ndarray) -> tuple[Array, np.ndarray]:
+    """Side lengths (l1 >= l2 >= l3) and vertices (A, B, C) with l1=AB, l2=AC, l3=BC."""
+    i, j, k = tri[:, 0], tri[:, 1], tri[:, 2]
+    # side opposite each vertex: opp[i] = |jk| etc.
+    opp = np.stack(
+        [
+            np.linalg.norm(P[j] - P[k], axis=1),
+            np.linalg.norm(P[i] - P[k], axis=1),
+            np.linalg.norm(P[i] - P[j], axis=1),
+        ],
+        axis=1,
+    )
+    # vertex opposite the longest side is C, opposite the middle is B, opposite shortest is A
+    order = np.argsort(-opp, axis=1, kind="stable")  # longest first
+    rows = np.arange(len(tri))[:, None]
+    sides = opp[rows, order]
+    verts = tri[rows, order]  # verts[:,0] opposite l1 = C, [:,1] opposite l2 = B, [:,2] = A
+    ids = np.stack([verts[:, 2], verts[:, 1], verts[:, 0]], axis=1)
+    return sides, ids
+
+
+def _rot_angle(R: Array) -> float:
+    return float(np.arctan2(R[1, 0], R[0, 0]))
+
+
+def rigid_fit_2d(src: Array, dst: Array) -> tuple[Array, Array]:
+    """Least-squares rotation R (2, 2), det +1, and translation t with ``dst ~ src R^T + t``
+    (Kabsch / Umeyama without scale)."""
+    ms, md = src.mean(axis=0), dst.mean(axis=0)
+    H = (src - ms).T @ (dst - md)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
+    R = Vt.T @ D @ U.T
+    return R, md - R @ ms
+
+
+class IdentifyConfig(BaseModel):
+    """Triangle matching tolerances."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    side_tol: float = Field(0.06, gt=0)  # m, |l_detected - l_library| per side
+    ambiguity_margin: float = Field(0.06, gt=0)  # m: sides closer than this give no vertex order
+    inlier_tol: float = Field(0.08, gt=0)  # m, detection to landmark after the fitted transform
+    same_pose_tol: float = Field(0.15, gt=0)  # m: hypotheses closer than this agree
+    max_triangles: int = Field(20, ge=1)  # detected triangles tried (nearest reflectors first)
+
+
+@dataclass(frozen=True)
+class Identification:
+    """``ids`` (n,) landmark id of each detection, -1 where unidentified; ``status`` says why
+    nothing was identified ("ok", "too_few", "no_match", "ambiguous")."""
+
+    ids: np.ndarray
+    status: str
+
+    @property
+    def count(self) -> int:
+        return int((self.ids >= 0).sum())
+
+
+def identify_reflectors(
+    det_xy: Array, library: TriangleLibrary, cfg: IdentifyConfig | None = None
+) -> Identification:
+    """Identify detections ``det_xy`` (n, 2), in any robot-fixed frame, against ``library``.
+
+    See the module docstring for the hypothesis scoring and the ambiguity rule.
+    """
+    cfg = cfg or IdentifyConfig()
+    P = np.asarray(det_xy, float).reshape(-1, 2)
+    n = len(P)
+    none = np.full(n, -1, dtype=int)
+    if n < 3 or len(library) == 0:
+        return Identification(none, "too_few")
+    L = library.landmarks
+    order = np.argsort(np.linalg.norm(P, axis=1))  # near reflectors are measured best
+    tri = np.array(list(combinations(order.tolist(), 3)), dtype=int)[: cfg.max_triangles]
+    sides, verts = _order_triangles(P, tri)
+    hyps: list[tuple[int, float, Array, Array, np.ndarray]] = []
+    for s, v in zip(sides, verts, strict=True):
+        if min(s[0] - s[1], s[1] - s[2]) < cfg.ambiguity_margin:
+            continue  # isosceles within noise: vertex order undefined
+        for m in library.lookup(s, cfg.side_tol):
+            R, t = rigid_fit_2d(P[v], L[library.ids[m]])
+            q = P @ R.T + t
+            d = np.linalg.norm(q[:, None, :] - L[None, :, :], axis=2)
+            nn = d.argmin(axis=1)
+            inl = d[np.arange(n), nn] <= cfg.inlier_tol
+            ids = np.where(inl, nn, -1)
+            # a landmark claimed twice: keep the closer detection
+            for lm in np.unique(ids[ids >= 0]):
+                dup = np.flatnonzero(ids == lm)
+                if len(dup) > 1:
+                    keep = dup[np.argmin(d[dup, lm])]
+                    ids[dup[dup != keep]] = -1
+            cnt = int((ids >= 0).sum())
+            if cnt >= 3:
+                err = float(np.mean(d[ids >= 0, ids[ids >= 0]]))
+                hyps.append((cnt, err, R, t, ids))
+    if not hyps:
+        return Identification(none, "no_match")
+    best = max(hyps, key=lambda h: (h[0], -h[1]))
+    for h in hyps:
+        if h[0] == best[0] and (
+            np.linalg.norm(h[3] - best[3]) > cfg.same_pose_tol
+            or abs(_rot_angle(h[2].T @ best[2])) > 0.05
+        ):
+            return Identification(none, "ambiguous")
+    return Identification(best[4], "ok")

@@ -1,0 +1,142 @@
+"""Reflector detection, triangle matching and trilateration against the twin's ground truth."""
+
+from __future__ import annotations
+
+from itertools import permutations
+
+import numpy as np
+import pytest
+
+from mmpa.errors import InvalidInputError
+from mmpa.geometry import T_to_se2
+from mmpa.localization.enhanced import ReflectorObserver
+from mmpa.localization.reflectors import (
+    DetectionConfig,
+    TriangleLibrary,
+    detect_reflectors,
+    identify_reflectors,
+)
+from mmpa.localization.trilateration import heading_eq2, trilaterate, trilaterate_eq1
+from mmpa.robot.interfaces import LaserScan
+from mmpa.sim.world import SimWorld
+
+
+@pytest.fixture(scope="module")
+def world():
+    with SimWorld(site="1") as w:
+        yield w
+
+
+def test_detection_and_identification_match_truth(world: SimWorld) -> None:
+    mount = T_to_se2(world.nominal.lidar.T_base_link_laser)
+    lib = TriangleLibrary(world.map_reflectors)
+    for site in ("0", "1", "2"):
+        world.reset(site)
+        scan = world.lidar.scan()
+        det = detect_reflectors(scan, DetectionConfig(radius=world.scene.reflectors.radius))
+        det_b = det.transformed(mount)
+        ident = identify_reflectors(det_b.points, lib)
+        assert ident.status == "ok" and ident.count >= 7
+        # every identified center lies on its TRUE reflector within a few cm
+        T = world.truth.T_map_base_link()
+        m = ident.ids >= 0
+        pts = det_b.points[m] @ T[:2, :2].T + T[:2, 3]
+        err = np.linalg.norm(pts - world.truth.reflector_positions()[ident.ids[m]], axis=1)
+        assert np.median(err) < 0.015 and err.max() < 0.08
+
+
+def test_library_sorted_and_lookup() -> None:
+    L = np.array([[0, 0], [4, 0], [0, 3], [7, 5], [2, 9]], float)
+    lib = TriangleLibrary(L)
+    assert len(lib) == 10 and np.all(np.diff(lib.sides[:, 0]) >= 0)
+    assert np.all(lib.sides[:, 0] >= lib.sides[:, 1]) and np.all(lib.sides[:, 1] >= lib.sides[:, 2])
+    i = lib.lookup(np.array([5.0, 4.0, 3.0]), 0.01)
+    assert len(i) == 1
+    a, b, c = lib.ids[i[0]]
+    # l1 = |AB| = 5, l2 = |AC| = 4, l3 = |BC| = 3 (the 3-4-5 triangle)
+    assert np.isclose(np.linalg.norm(L[a] - L[b]), 5) and np.isclose(np.linalg.norm(L[a] - L[c]), 4)
+
+
+def test_identification_any_order_rigid_motion() -> None:
+    rng = np.random.default_rng(3)
+    L = rng.uniform(-5, 5, (8, 2))
+    lib = TriangleLibrary(L)
+    th = 0.7
+    R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    pose_t = np.array([1.0, -2.0])
+    sub = [5, 1, 6, 2]
+    det = (L[sub] - pose_t) @ R + rng.normal(0, 0.005, (4, 2))  # robot frame
+    ident = identify_reflectors(det, lib)
+    assert ident.status == "ok" and list(ident.ids) == sub
+
+
+def test_symmetric_layout_is_not_confidently_wrong() -> None:
+    # a square: every triangle is isosceles, the vertex order is undefined
+    L = np.array([[0, 0], [2, 0], [2, 2], [0, 2]], float)
+    ident = identify_reflectors(L[[0, 1, 2]] + 0.001, TriangleLibrary(L))
+    assert ident.count == 0 and ident.status in ("ambiguous", "no_match")
+    # two detections only: nothing to match
+    assert identify_reflectors(L[:2], TriangleLibrary(L)).status == "too_few"
+
+
+def test_trilateration_closed_form() -> None:
+    L = np.array([[0, 0], [6, 0], [0, 5], [5, 6]], float)
+    G, th = np.array([2.0, 1.5]), 0.4
+    r = np.linalg.norm(L - G, axis=1)
+    phi = np.arctan2(L[:, 1] - G[1], L[:, 0] - G[0]) - th
+    Ge, rms = trilaterate_eq1(L, r)
+    np.testing.assert_allclose(Ge, G, atol=1e-9)
+    assert rms < 1e-9
+    # eq. 2 across the +-pi seam: the circular mean does not average to 0
+    th2 = np.pi - 0.01
+    phi2 = np.arctan2(L[:, 1] - G[1], L[:, 0] - G[0]) - th2
+    assert abs(heading_eq2(G, L, phi2) - th2) < 1e-9
+    res = trilaterate(L, r, phi)
+    np.testing.assert_allclose(res.pose, [2.0, 1.5, 0.4], atol=1e-9)
+    for perm in permutations(range(4), 3):
+        p = list(perm)
+        np.testing.assert_allclose(trilaterate_eq1(L[p], r[p])[0], G, atol=1e-9)
+    with pytest.raises(InvalidInputError, match="at least 3"):
+        trilaterate_eq1(L[:2], r[:2])
+    with pytest.raises(InvalidInputError, match="collinear"):
+        trilaterate_eq1(np.array([[0, 0], [1, 0], [2, 0]], float), np.array([1.0, 1.0, 1.5]))
+    with pytest.raises(InvalidInputError):
+        trilaterate(L, r * np.nan, phi)
+
+
+def test_observer_fix_vs_truth(world: SimWorld) -> None:
+    obs = ReflectorObserver(world.map_reflectors, T_to_se2(world.nominal.lidar.T_base_link_laser))
+    errs = []
+    for site in ("1", "2"):
+        world.reset(site)
+        for _ in range(5):
+            fix = obs.observe(world.lidar.scan())
+            assert fix is not None
+            t = world.truth.base_pose2d()
+            errs.append(np.hypot(*(fix.pose[:2] - t[:2])))
+            assert abs(fix.pose[2] - t[2]) < 0.005
+    assert np.mean(errs) < 0.006 and max(errs) < 0.015
+
+
+def test_scan_bad_input() -> None:
+    n = 5
+    angles = dict(angle_min=0.0, angle_max=0.04, angle_increment=0.01, time_increment=0.0)
+    scan = LaserScan(
+        **angles,
+        scan_time=0.1,
+        range_min=0.1,
+        range_max=10.0,
+        ranges=np.array([np.nan, np.inf, -1.0, 50.0, 2.0]),
+        intensities=np.array([3000.0, 3000.0, 3000.0, 3000.0, 3000.0]),
+    )
+    det = detect_reflectors(scan)
+    assert len(det) == 1 and abs(det.ranges[0] - 2.04) < 1e-6  # only the valid beam, + radius
+    no_int = LaserScan(
+        **angles,
+        scan_time=0.1,
+        range_min=0.1,
+        range_max=10.0,
+        ranges=np.full(n, 2.0),
+        intensities=np.zeros(n),
+    )
+    assert len(detect_reflectors(no_int)) == 0

@@ -1,0 +1,69 @@
+"""A* on the inflated grid, pure pursuit, and navigation in the twin on the estimate."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from mmpa.errors import UnreachableError
+from mmpa.localization.localizer import make_localizer
+from mmpa.localization.maps import Box2D, rasterize
+from mmpa.navigation.follower import PathFollower
+from mmpa.navigation.mission import (
+    NavigateConfig,
+    laser_pose2d,
+    navigate,
+    twin_map,
+    twin_nav_map,
+)
+from mmpa.navigation.planner import CostMap, PlannerConfig, plan_path
+from mmpa.sim.world import SimWorld
+
+
+def test_astar_goes_around_a_wall_and_keeps_clear() -> None:
+    walls = [
+        Box2D((0.0, 0.0), (0.1, 3.0)),
+        Box2D((0.0, 2.5), (8.0, 0.1)),
+        Box2D((0.0, -2.5), (8.0, 0.1)),
+    ]
+    g = rasterize(walls, (-4, -3, 4, 3), 0.05)
+    cm = CostMap(g, PlannerConfig())
+    path = plan_path(cm, np.array([-2.0, 0.0]), np.array([2.0, 0.0]))
+    assert np.allclose(path[0], [-2, 0]) and np.allclose(path[-1], [2, 0])
+    # densify and check every point stays >= inscribed radius from obstacles
+    pts = np.vstack([np.linspace(a, b, 50) for a, b in itertools.pairwise(path)])
+    c, r = g.world_to_cell(pts)
+    assert cm.dist[r, c].min() >= 0.3 - 0.05
+    length = np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1))
+    assert 2 * np.hypot(2.0, 1.8) - 0.1 < length < 8.0  # around the wall end, not through it
+    blocked = rasterize([Box2D((0.0, 0.0), (0.1, 6.0))], (-4, -3, 4, 3), 0.05)
+    with pytest.raises(UnreachableError):
+        plan_path(CostMap(blocked), np.array([-2.0, 0.0]), np.array([2.0, 0.0]))
+
+
+def test_pure_pursuit_follows_a_line() -> None:
+    f = PathFollower(np.array([[0.0, 0.0], [5.0, 0.0]]), np.array([5.0, 0.0, 0.0]))
+    pose = np.array([0.0, 0.3, 0.0])
+    for _ in range(600):
+        v, w, _done = f.command(pose)
+        pose = pose + 0.05 * np.array([v * np.cos(pose[2]), v * np.sin(pose[2]), w])
+        if f.final_phase:
+            break
+    assert f.final_phase and abs(pose[1]) < 0.05
+
+
+def test_navigate_on_the_estimate_parks_at_the_site() -> None:
+    with SimWorld(site="0") as world:
+        grid = twin_map(world)
+        loc = make_localizer("enhanced", grid, laser_pose2d(world), np.random.default_rng(0))
+        loc.initialize(world.truth.base_pose2d() + np.array([0.05, -0.05, 0.03]))
+        goal = world.scene.site("2").pose2d
+        cm = CostMap(twin_nav_map(world))
+        res = navigate(
+            world, loc, grid, goal, NavigateConfig(scan_rate=5.0, timeout=60.0), costmap=cm
+        )
+    assert res.reached
+    assert res.parking_error_xy < 0.01 and res.parking_error_yaw < 0.01
+    assert np.hypot(*res.localization_error[:2]) < 0.006

@@ -1,0 +1,32 @@
+"""``mmpa navigate`` and ``mmpa map export`` end to end."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from mmpa.cli.main import app
+from mmpa.localization.maps import load_map
+
+runner = CliRunner()
+
+
+def test_navigate_prints_parking_error(tmp_path) -> None:
+    res = runner.invoke(app, ["navigate", "--to", "2", "--out", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    assert "parking_error_xy_mm" in res.output
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["reached"] and s["parking_error_xy_mm"] < 10 and s["localization_error_xy_mm"] < 6
+
+
+def test_navigate_unknown_site_fails_cleanly() -> None:
+    res = runner.invoke(app, ["navigate", "--to", "9"])
+    assert res.exit_code == 2 and "unknown site" in res.output
+
+
+def test_map_export_round_trip(tmp_path) -> None:
+    res = runner.invoke(app, ["map", "export", "--out", str(tmp_path / "m.yaml")])
+    assert res.exit_code == 0, res.output
+    g = load_map(tmp_path / "m.yaml")
+    assert g.resolution == 0.05 and len(g.reflectors) == 9 and g.occupied.sum() > 1000
