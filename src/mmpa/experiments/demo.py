@@ -62,6 +62,9 @@ class DemoConfig(BaseModel):
     localization: str = "enhanced"
     navigate: NavigateConfig = NavigateConfig()
     arm_view: tuple[float, ...] | None = None  # joints for the bench view; None: view_bench
+    # MMPA (paper 000): a demonstration taught at the goal site before the drive; after
+    # parking there, IPE + the adapted tool path run and are scored against the truth
+    mmpa_task: str | None = "needle_site1"
     errors: ErrorModelConfig = ErrorModelConfig()
 
 
@@ -134,7 +137,9 @@ def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None)
         q_view = np.array(
             cfg.arm_view if cfg.arm_view is not None else world.nominal.arm.view_bench
         )
+        taught = _teach_first(world, cfg, progress)
         start = world.truth.base_pose2d()
+        estimate = None
         if cfg.localization == "truth":
             done, path = _drive_true_pose(world, goal, cfg, progress)
             loc_err = None
@@ -159,9 +164,13 @@ def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None)
             done = res.reached
             path = list(res.trace["truth"]) or [start]
             loc_err = res.localization_error
+            estimate = res.trace["estimate"][-1] if len(res.trace["estimate"]) else None
         world.base.stop()
         world.step(0.5)
         drive_time = world.time
+        mmpa_summary = (
+            _run_mmpa(world, taught, estimate, out, progress) if taught is not None and done else {}
+        )
         final = world.truth.base_pose2d()
         T_err = inv(se2_to_T(*goal)) @ world.truth.T_map_base_link()
         if progress is not None:
@@ -193,9 +202,65 @@ def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None)
             "odometry_distance_m": round(float(np.hypot(*odo.pose[:2])), 4),
             "true_distance_m": round(float(np.hypot(*(final[:2] - start[:2]))), 4),
             **{k: v for k, v in extra.items() if not k.startswith("_")},
+            **mmpa_summary,
         }
     _write_summary(out, summary)
     return summary
+
+
+def _teach_first(world: SimWorld, cfg: DemoConfig, progress: Progress | None):
+    """One-shot teaching of ``cfg.mmpa_task`` at the goal site, then back to the start."""
+    if cfg.mmpa_task is None:
+        return None
+    from mmpa.experiments.mmpa_common import MMPAExperimentConfig, teach_in_world
+    from mmpa.sim.operator import get_demonstration
+
+    demo = get_demonstration(cfg.mmpa_task)
+    if progress is not None:
+        progress(f"teaching {demo.name} at site {cfg.goal_site}", 0.0)
+    taught = teach_in_world(world, demo, cfg.goal_site, MMPAExperimentConfig(errors=cfg.errors))
+    world.reset(site=cfg.start_site)
+    return taught
+
+
+def _run_mmpa(world: SimWorld, taught, estimate: Array | None, out: Path, progress) -> dict:
+    """Automation stage at the parked pose: IPE, eq. 11, execution; scored on the truth."""
+    from mmpa.experiments.mmpa_common import key_error, pose_errors
+    from mmpa.missions.mmpa import automate, execute_joint_path
+    from mmpa.tasks import write_bundle
+
+    if progress is not None:
+        progress("MMPA: IPE and the taught path", 1.0)
+    write_bundle(taught.task, out / "task", overwrite=True)
+    res = automate(
+        taught.task,
+        arm=world.arm,
+        camera=world.camera,
+        gripper=world.gripper,
+        robot=world.nominal,
+        T_map_base_now=None if estimate is None else se2_to_T(*estimate),
+    )
+    truth = inv(world.truth.T_map_arm_base()) @ taught.T_map_Bo
+    e_r, e_t = pose_errors(res.ipe.dT_B if res.ipe is not None else None, truth)
+    out_d = {
+        "mmpa_task": taught.task.name,
+        "mmpa_parking_offset_mm": round(float(np.linalg.norm(truth[:3, 3])) * 1e3, 2),
+        "mmpa_ipe_ok": bool(res.ipe is not None and res.ipe.ok),
+        "mmpa_ipe_iterations": res.ipe.n_iterations if res.ipe is not None else 0,
+        "mmpa_ipe_compute_s": round(res.ipe.seconds_compute, 3) if res.ipe is not None else None,
+        "mmpa_ipe_E_t_mm": None if np.isnan(e_t) else round(e_t * 1e3, 3),
+        "mmpa_ipe_E_R": None if np.isnan(e_r) else round(e_r, 5),
+    }
+    if res.ok and res.joint_path is not None:
+        rec = execute_joint_path(
+            world.arm, world.gripper, res.joint_path, taught.task.path.gripper, record_hz=50.0
+        )
+        assert rec is not None
+        err = key_error(world, taught, rec[0], rec[1], res.joint_path.t[taught.key_index])
+        out_d["mmpa_tool_error_mm"] = round(err * 1e3, 3)
+    else:
+        out_d["mmpa_reason"] = res.reason
+    return out_d
 
 
 def _drive_true_pose(

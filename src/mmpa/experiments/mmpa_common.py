@@ -115,6 +115,47 @@ def _truth_meta(taught_T_map_Bo: Array, key_tcp: Array, key_index: int, seed: in
     }
 
 
+def teach_in_world(
+    w: SimWorld, demo: Demonstration, teach_site: str, cfg: MMPAExperimentConfig
+) -> Taught:
+    """Park at ``teach_site``, let the twin's operator play ``demo`` while mmpa records the
+    task (paper 000 §3.1); the truth for later scoring goes into the task's ``twin_*`` meta."""
+    if demo.site != teach_site:
+        raise ConfigError(
+            f"demonstration {demo.name!r} belongs to site {demo.site!r}, not {teach_site!r}"
+        )
+    w.reset(site=teach_site)
+    rng = w.error_model.rng("teach_park_estimate")
+    sx, sth = cfg.localization_sigma
+    est = w.truth.base_pose2d() + rng.normal(0, [sx, sx, sth])
+    q_sample = sampling_joints(w, demo)
+    holder: dict = {}
+
+    def record():
+        rec = demonstrate(w, demo)
+        holder["rec"] = rec
+        return rec.t, rec.q, rec.gripper, rec.rate_hz
+
+    task = teach(
+        demo.name,
+        teach_site,
+        arm=w.arm,
+        camera=w.camera,
+        robot=w.nominal,
+        T_map_base_park=se2_to_T(*est),
+        q_sample=q_sample,
+        record=record,
+        cfg=cfg.teach,
+        description=demo.description,
+    )
+    rec = holder["rec"]
+    key = true_tcp_in_map(w, rec.q[rec.key_index : rec.key_index + 1])[0]
+    T_map_Bo = w.truth.T_map_arm_base()
+    meta = _truth_meta(T_map_Bo, key, rec.key_index, cfg.errors.seed)
+    task = dataclasses.replace(task, meta={**task.meta, **meta})
+    return Taught(task, demo, T_map_Bo, key, rec.key_index)
+
+
 class TwinSite:
     """One world for one automation site: teaches its task once (or takes a task taught in the
     twin before, with its ``twin_*`` truth), then parks and runs trials."""
@@ -163,41 +204,7 @@ class TwinSite:
         return a
 
     def _teach(self, demo: Demonstration, teach_site: str) -> Taught:
-        if demo.site != teach_site:
-            raise ConfigError(
-                f"demonstration {demo.name!r} belongs to site {demo.site!r}, not {teach_site!r}"
-            )
-        w = self.world
-        w.reset(site=teach_site)
-        rng = w.error_model.rng("teach_park_estimate")
-        sx, sth = self.cfg.localization_sigma
-        est = w.truth.base_pose2d() + rng.normal(0, [sx, sx, sth])
-        q_sample = sampling_joints(w, demo)
-        holder: dict = {}
-
-        def record():
-            rec = demonstrate(w, demo)
-            holder["rec"] = rec
-            return rec.t, rec.q, rec.gripper, rec.rate_hz
-
-        task = teach(
-            demo.name,
-            self.site,
-            arm=w.arm,
-            camera=w.camera,
-            robot=w.nominal,
-            T_map_base_park=se2_to_T(*est),
-            q_sample=q_sample,
-            record=record,
-            cfg=self.cfg.teach,
-            description=demo.description,
-        )
-        rec = holder["rec"]
-        key = true_tcp_in_map(w, rec.q[rec.key_index : rec.key_index + 1])[0]
-        T_map_Bo = w.truth.T_map_arm_base()
-        meta = _truth_meta(T_map_Bo, key, rec.key_index, self.cfg.errors.seed)
-        task = dataclasses.replace(task, meta={**task.meta, **meta})
-        return Taught(task, demo, T_map_Bo, key, rec.key_index)
+        return teach_in_world(self.world, demo, teach_site, self.cfg)
 
     def park(self) -> Array:
         """Park with a Table 2 offset (planar part; z, roll, pitch come from the terrain);
@@ -229,9 +236,7 @@ class TwinSite:
     def key_error(self, q_record: Array, t_record: Array, t_key: float) -> float:
         """Distance (m) of the TRUE tool tip at time ``t_key`` of an executed recording from
         the taught TRUE tip."""
-        i = int(np.argmin(np.abs(t_record - t_key)))
-        tip = true_tcp_in_map(self.world, q_record[i : i + 1])[0]
-        return float(np.linalg.norm(tip - self.taught.key_tcp_map))
+        return key_error(self.world, self.taught, t_record, q_record, t_key)
 
     def run_ipe(self, cfg: AutomationConfig | None = None, execute: bool = False):
         a = (cfg or self.automation_config()).model_copy(update={"execute": execute})
@@ -268,6 +273,14 @@ class TwinSite:
         assert rec is not None
         t_key = self.taught.task.path.t[self.taught.key_index]
         return self.key_error(rec[1], rec[0], t_key)
+
+
+def key_error(w: SimWorld, taught: Taught, t_record: Array, q_record: Array, t_key: float) -> float:
+    """Distance (m) of the TRUE tool tip at time ``t_key`` of an executed recording (encoder
+    samples at the current base pose) from the TRUE tip recorded at teaching."""
+    i = int(np.argmin(np.abs(np.asarray(t_record) - t_key)))
+    tip = true_tcp_in_map(w, np.asarray(q_record)[i : i + 1])[0]
+    return float(np.linalg.norm(tip - taught.key_tcp_map))
 
 
 def _taught_from_task(task: Task, demos: dict[str, Demonstration]) -> Taught:
