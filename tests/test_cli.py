@@ -77,3 +77,20 @@ def test_bad_overrides_name_the_problem():
         load_config(DemoConfig, None, ["controller.max_v=fast"])
     with pytest.raises(ConfigError, match="nonsense"):
         load_config(DemoConfig, None, ["nonsense=1"])
+
+
+def test_demo_main_job_end_to_end(tmp_path):
+    """`mmpa demo`: teach at Site 1, drive 0 -> 1 on the localization estimate, then MMPA;
+    every figure is checked against the simulator's truth it reports."""
+    res = runner.invoke(app, ["demo", "--out", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["reached"] and s["parking_error_xy_m"] < 0.02
+    assert s["mmpa_ipe_ok"] and s["mmpa_ipe_E_t_mm"] < 3.0
+    assert s["mmpa_tool_error_mm"] < 1.5
+    from mmpa.tasks import read_bundle
+
+    task = read_bundle(tmp_path / "task")
+    assert task.name == "needle_site1" and len(task.cloud) > 100_000
+    for name in ("color.png", "depth.png", "topdown.png", "cloud.ply", "config.yaml"):
+        assert (tmp_path / name).stat().st_size > 0
