@@ -78,7 +78,11 @@ class MMPAExperimentConfig(BaseModel):
     seed: int = 0
     trials: int | None = None  # per site; None: the paper's 30
     sites: list[str] = ["1", "2", "2'"]
-    parking: Literal["sampled"] = "sampled"  # paper Table 2 offsets
+    # sampled: paper Table 2 offsets; physics: drive from near Site 0 with mmpa's navigation
+    # on the localization estimate (``localizer``) and park where it stops
+    parking: Literal["sampled", "physics"] = "sampled"
+    localizer: str = "enhanced"  # a method of mmpa.localization.localizer (physics parking)
+    start_sigma: tuple[float, float] = (0.05, float(np.deg2rad(5.0)))  # m, rad around Site 0
     # base localization error (m, rad) of the park pose estimates at teaching and automation
     # (paper 001's enhanced AMCL reaches ~1 cm)
     localization_sigma: tuple[float, float] = (0.01, float(np.deg2rad(0.5)))
@@ -206,10 +210,47 @@ class TwinSite:
     def _teach(self, demo: Demonstration, teach_site: str) -> Taught:
         return teach_in_world(self.world, demo, teach_site, self.cfg)
 
+    def park_by_driving(self) -> Array:
+        """Start near Site 0 (told the rough pose), navigate to the site on the localization
+        estimate, stop; the parking error is whatever the physics and localization leave."""
+        from mmpa.localization.localizer import make_localizer
+        from mmpa.navigation.mission import (
+            NavigateConfig,
+            laser_pose2d,
+            navigate,
+            twin_map,
+            twin_nav_map,
+        )
+        from mmpa.navigation.planner import CostMap
+
+        w = self.world
+        if not hasattr(self, "_nav"):
+            grid = twin_map(w)
+            self._nav = (grid, CostMap(twin_nav_map(w), NavigateConfig().planner))
+        grid, costmap = self._nav
+        s0 = w.scene.site("0").pose2d
+        sx, sth = self.cfg.start_sigma
+        w.reset(site="0", pose2d=s0 + self.rng.normal(0, [sx, sx, sth]))
+        w.set_speed_bump(w.scene.site(self.site).speed_bump)  # Site 2' drives onto the bump
+        loc = make_localizer(self.cfg.localizer, grid, laser_pose2d(w), self.rng)
+        loc.initialize(s0)
+        goal = w.scene.site(self.site).pose2d
+        res = navigate(w, loc, grid, goal, NavigateConfig(), costmap=costmap)
+        w.base.stop()
+        w.step(0.5)
+        est = res.trace["estimate"][-1] if len(res.trace["estimate"]) else goal
+        self.T_map_base_estimate = se2_to_T(*est)
+        self.parked_pose2d = w.truth.base_pose2d()
+        self.nav_reached = bool(res.reached)
+        return T_to_vec6(self.parking_truth())
+
     def park(self) -> Array:
         """Park with a Table 2 offset (planar part; z, roll, pitch come from the terrain);
         returns the sampled 6D offset. Offsets with |yaw| above ``max_yaw_offset_deg`` are
-        redrawn (a navigation stack would not report such a pose as parked)."""
+        redrawn (a navigation stack would not report such a pose as parked). With
+        ``parking="physics"`` the base drives there instead (:meth:`park_by_driving`)."""
+        if self.cfg.parking == "physics":
+            return self.park_by_driving()
         w = self.world
         site = w.scene.site(self.site)
         for _ in range(100):
