@@ -34,7 +34,7 @@ TABLE3 = {
     "paper_cup": {"high": 0.90, "normal": 0.90, "dark": 0.65},
 }
 #: the reachable part of the desk (desk-top frame, m) where trial objects are placed
-REGION = (-0.2, 0.2, -0.22, 0.0)
+REGION = (-0.15, 0.15, -0.22, 0.0)
 LOOK_TARGET = (0.47, 0.0)  # arm_base x, y of the first view
 LOOK_HEIGHT = 0.45  # m above the desk top
 
@@ -118,7 +118,7 @@ def grasp_trial(
     from mmpa.servo.grasp import look_configuration
 
     x, y, th = DESK_PARK
-    pose = np.array([x, y, th]) + rng.uniform(-1, 1, 3) * np.array([0.1, 0.03, 0.08])
+    pose = np.array([x, y, th]) + rng.uniform(-1, 1, 3) * np.array([0.05, 0.03, 0.05])
     world.reset(pose2d=pose, settle=0.2)
     world.set_lighting(lighting)
     pool = [c for c in CLASSES if c != name]
