@@ -48,3 +48,9 @@ def test_unknown_object_and_object_out_of_view(world):
     assert res.reason == "not found" and not res.closed_on_object
     # a safe stop: the arm held still
     assert np.abs(world.arm.joint_positions() - q0).max() < 0.01
+
+
+def test_static_grasp_with_the_shipped_detector(world):
+    g = make_grasper(Config(), world)
+    row = grasp_trial(world, g, "cube", "normal", np.random.default_rng(3))
+    assert row["detected"] and row["grasped"], row

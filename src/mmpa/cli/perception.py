@@ -73,6 +73,50 @@ def train_cmd(
     _log(f"wrote {out}")
 
 
+@perception_app.command("prune")
+def prune_cmd(
+    out: Annotated[Path, typer.Option(help="pruned weights file to write (.pt)")],
+    data: Annotated[Path, typer.Option(help="training .npz (fine-tuning and validation)")],
+    weights: Annotated[Path | None, typer.Option(help="weights (default: shipped)")] = None,
+    target: Annotated[float, typer.Option(help="keep this fraction of the MACs")] = 0.5,
+    short_term_batches: Annotated[int, typer.Option()] = 4,
+    long_term_epochs: Annotated[int, typer.Option()] = 1,
+    threads: Annotated[int, typer.Option()] = 2,
+) -> None:
+    """NetAdapt-style channel pruning of a trained detector."""
+    try:
+        from mmpa.perception import require_torch
+
+        require_torch()
+        from mmpa.perception.dataset import load_dataset
+        from mmpa.perception.prune import PruneConfig, macs, netadapt
+        from mmpa.perception.ssd import Detector
+
+        det = Detector.load(weights)
+        ds = load_dataset(data)
+        cfg = PruneConfig(
+            target_ratio=target,
+            short_term_batches=short_term_batches,
+            long_term_epochs=long_term_epochs,
+            threads=threads,
+        )
+        model, steps = netadapt(det.model, ds, cfg, log=_log)
+        m0 = macs(det.cfg)
+        pruned = Detector(
+            model,
+            {
+                "pruned_from": str(weights or "shipped"),
+                "macs_ratio": macs(model.cfg) / m0,
+                "steps": [[s.layer, list(s.channels), s.macs, s.val_loss] for s in steps],
+            },
+        )
+        out.parent.mkdir(parents=True, exist_ok=True)
+        pruned.save(out)
+    except MMPAError as e:
+        fail(e)
+    _log(f"wrote {out}: channels {model.cfg.channels}, {macs(model.cfg) / m0:.2f} of the MACs")
+
+
 @perception_app.command("evaluate")
 def evaluate_cmd(
     weights: Annotated[Path | None, typer.Option(help="weights (default: shipped)")] = None,
