@@ -45,9 +45,10 @@ class Config(BaseModel):
     objects: list[str] = Field(default_factory=lambda: list(CLASSES))
     lighting: list[str] = Field(default_factory=lambda: list(LIGHTING_CONDITIONS))
     weights: str | None = None  # detector weights; None: shipped model; "oracle": truth boxes
-    preprocess_dark: bool = True
+    preprocess_dark: bool = False  # measured: hurts the shipped detector (see perception)
     use_predictor: bool = True
     others: int = 2  # other objects on the desk besides the target
+    max_time: float = 15.0  # s of simulated time per attempt
 
     def n_trials(self) -> int:
         return 20 if self.trials is None else self.trials
@@ -230,7 +231,11 @@ def make_grasper(cfg: Any, world: Any = None) -> Any:
     from mmpa.servo.grasp import GraspConfig, TrackingGrasp
 
     det = OracleDetector(world) if cfg.weights == "oracle" else Detector.load(cfg.weights)
-    gc = GraspConfig(preprocess_dark=cfg.preprocess_dark, use_predictor=cfg.use_predictor)
+    gc = GraspConfig(
+        preprocess_dark=cfg.preprocess_dark,
+        use_predictor=cfg.use_predictor,
+        max_time=getattr(cfg, "max_time", 15.0),
+    )
     return TrackingGrasp(det, default_robot(), gc)
 
 

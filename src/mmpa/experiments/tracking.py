@@ -31,8 +31,9 @@ class Config(BaseModel):
     object: str = "tennis_ball"
     lighting: str = "normal"
     weights: str | None = None  # None: shipped detector; "oracle": truth boxes
-    preprocess_dark: bool = True
+    preprocess_dark: bool = False
     others: int = 1
+    max_time: float = 15.0  # s of simulated time per attempt
 
     def n_trials(self) -> int:
         return 10 if self.trials is None else self.trials
@@ -47,7 +48,10 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     with SimWorld(site="0") as world:
         for pred in cfg.predictor:
             gcfg = GraspExperimentConfig(
-                weights=cfg.weights, preprocess_dark=cfg.preprocess_dark, use_predictor=pred
+                weights=cfg.weights,
+                preprocess_dark=cfg.preprocess_dark,
+                use_predictor=pred,
+                max_time=cfg.max_time,
             )
             grasper = make_grasper(gcfg, world)
             for speed in cfg.speeds:
