@@ -33,12 +33,12 @@ fi
 [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
 stamp=$(cat pyproject.toml constraints.txt scripts/setup.sh | sha256sum | cut -c1-16)-$FLAVOR
 if [ "$(cat .setup-stamp 2>/dev/null)" != "$stamp" ]; then
-  echo "[setup] installing mmpa[dev,$FLAVOR] into $VENV"
+  echo "[setup] installing mmpa[dev,$FLAVOR,perception] into $VENV"
   "$VENV/bin/python" -m pip install -q --upgrade pip
   # constraints.txt pins the exact versions tested together (regenerate with
   # `.venv/bin/pip freeze --exclude-editable | grep -v ^mmpa > constraints.txt`)
   cons=(-c constraints.txt)
   [ "$FLAVOR" = cpu ] || cons=()  # the CUDA flavor resolves its own Open3D dependencies
-  "$VENV/bin/python" -m pip install -q "${cons[@]}" -e ".[dev,$FLAVOR]"
+  "$VENV/bin/python" -m pip install -q "${cons[@]}" -e ".[dev,$FLAVOR,perception]"
   echo "$stamp" > .setup-stamp
 fi

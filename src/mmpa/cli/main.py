@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from mmpa.cli.perception import perception_app
 from mmpa.cli.tasks import tasks_app
 from mmpa.errors import MMPAError
 
@@ -29,6 +30,7 @@ app = typer.Typer(
 sim_app = typer.Typer(help="The digital twin: pictures and checks.", no_args_is_help=True)
 app.add_typer(sim_app, name="sim")
 app.add_typer(tasks_app, name="tasks")
+app.add_typer(perception_app, name="perception")
 console = Console()
 
 ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="YAML config file.")]

@@ -462,13 +462,17 @@ class _Builder:
         body = ET.SubElement(self.world, "body", name=obj.name, pos=_f(*obj.position))
         ET.SubElement(body, "freejoint", name=f"{obj.name}_free")
         rgba = _f(*obj.color, 1.0)
+        look = {"rgba": rgba}
+        if obj.glossy:
+            look["material"] = self._glossy()
         common = {
             "group": str(GROUP["objects"]),
-            "rgba": rgba,
             "mass": _f(obj.mass),
             "friction": "1.0 0.01 0.001",
             "condim": "4",
+            **look,
         }
+        deco = {"group": str(GROUP["objects"]), "contype": "0", "conaffinity": "0", "mass": "0"}
         if obj.kind == "cube":
             ET.SubElement(
                 body,
@@ -482,15 +486,53 @@ class _Builder:
             ET.SubElement(
                 body, "geom", name=f"{obj.name}_geom", type="sphere", size=_f(obj.size[0]), **common
             )
-        else:  # bottle, cup, stick: upright cylinders
+        else:  # bottle, cup, stick: cylinders, upright or lying along the body x axis
+            r, hh = obj.size[0], obj.size[1]
+            axis = {"euler": "0 1.5707963 0"} if obj.lying else {}
             ET.SubElement(
                 body,
                 "geom",
                 name=f"{obj.name}_geom",
                 type="cylinder",
-                size=_f(obj.size[0], obj.size[1]),
+                size=_f(r, hh),
+                **axis,
                 **common,
             )
+            if obj.label is not None:
+                ET.SubElement(
+                    body,
+                    "geom",
+                    name=f"{obj.name}_label",
+                    type="cylinder",
+                    size=_f(r * 1.03, hh * 0.35),
+                    rgba=_f(*obj.label, 1.0),
+                    **axis,
+                    **deco,
+                )
+            if obj.cap is not None:
+                bottle = obj.kind == "bottle"
+                cap_r, cap_h = (0.45 * r, 0.1 * hh) if bottle else (1.02 * r, 0.25 * hh)
+                c = hh + cap_h if obj.kind == "bottle" else hh - cap_h * 0.99
+                pos = _f(c, 0, 0) if obj.lying else _f(0, 0, c)
+                ET.SubElement(
+                    body,
+                    "geom",
+                    name=f"{obj.name}_cap",
+                    type="cylinder",
+                    size=_f(cap_r, cap_h),
+                    pos=pos,
+                    rgba=_f(*obj.cap, 1.0),
+                    **axis,
+                    **deco,
+                )
+
+    def _glossy(self) -> str:
+        if "mat_glossy" not in self._materials:
+            ET.SubElement(
+                self.asset, "material", name="mat_glossy", specular="0.8", shininess="0.8"
+            )
+            self._materials.add("mat_glossy")
+        return "mat_glossy"
 
     def build_fiducials(self) -> None:
         fa = self.scene.fiducial_artifact

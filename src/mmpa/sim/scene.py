@@ -169,7 +169,13 @@ class Workbench(_Model):
 
 
 class GraspObject(_Model):
-    """A graspable free body (paper 001 Fig. 11 objects)."""
+    """A graspable free body (paper 001 Fig. 11 objects).
+
+    ``size``: cube (half edge,), ball (radius,), bottle/cup/stick (radius, half height).
+    ``lying``: a cylinder lying on its side (axis horizontal, along the body x axis).
+    ``glossy``: specular plastic/glass look instead of matte. ``label``/``cap``: an extra
+    colored band around the middle / a cap on top of a cylinder (looks only, no collision).
+    """
 
     name: str
     kind: Literal["cube", "ball", "bottle", "cup", "stick"]
@@ -177,6 +183,10 @@ class GraspObject(_Model):
     size: tuple[float, ...]
     color: tuple[float, float, float]
     mass: float = Field(0.1, gt=0)
+    lying: bool = False
+    glossy: bool = False
+    label: tuple[float, float, float] | None = None
+    cap: tuple[float, float, float] | None = None
 
 
 class FiducialArtifact(_Model):

@@ -225,6 +225,23 @@ class SimCamera:
         color, depth = self._render()
         return RGBDFrame(color=color, depth=depth, intrinsics=self._desc.color, stamp=stamp)
 
+    def segmentation(self) -> np.ndarray:
+        """Ground-truth segmentation (H, W) int32: the MuJoCo BODY id seen at each pixel,
+        -1 where no geom is seen (for labelling rendered training data; evaluation only)."""
+        r = self._renderer
+        if r is None:
+            raise SimulationError(f"camera {self._camera!r} was closed")
+        r.update_scene(self._data, camera=self._cam_id)
+        r.enable_segmentation_rendering()
+        try:
+            seg = r.render()
+        finally:
+            r.disable_segmentation_rendering()
+        out = np.full(seg.shape[:2], -1, dtype=np.int32)
+        is_geom = (seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)) & (seg[..., 0] >= 0)
+        out[is_geom] = self._model.geom_bodyid[seg[..., 0][is_geom]]
+        return out
+
     def close(self) -> None:
         """Free the renderer (idempotent)."""
         if self._renderer is not None:

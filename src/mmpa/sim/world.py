@@ -12,12 +12,13 @@ Units: m, rad, s. Every random draw comes from the error model's seeded streams.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import mujoco
 import numpy as np
 from ruckig import InputParameter, Result, Ruckig, Trajectory
 
-from mmpa.errors import InvalidInputError, SimulationError, UnreachableError
+from mmpa.errors import InvalidInputError, SimulationError, UnknownNameError, UnreachableError
 from mmpa.geometry import Array, T_to_se2, make_T, rpy_to_R
 from mmpa.robot.description import RobotDescription, default_robot
 from mmpa.robot.interfaces import Odometry
@@ -165,6 +166,76 @@ class SimWorld:
         pos = self._bump_pos.copy()
         pos[2] = 0.0 if enabled else -1.0
         self.model.body_pos[self._bump_body] = pos
+        mujoco.mj_forward(self.model, self.data)
+
+    # --- lighting and object placement (perception experiments, training data) -----------
+    LIGHTING: ClassVar[dict[str, float]] = {"dark": 0.18, "normal": 1.0, "high": 2.2}
+
+    def set_lighting(self, condition: str | float) -> None:
+        """Scale every light and the headlight: ``"dark"``, ``"normal"``, ``"high"`` (paper 001
+        Table 3's three conditions) or a positive factor relative to the built-in lights."""
+        if isinstance(condition, str):
+            if condition not in self.LIGHTING:
+                raise UnknownNameError("lighting condition", condition, list(self.LIGHTING))
+            k = self.LIGHTING[condition]
+        else:
+            k = float(condition)
+            if not (np.isfinite(k) and k > 0):
+                raise InvalidInputError(f"lighting factor must be positive, got {condition}")
+        m = self.model
+        if not hasattr(self, "_light0"):
+            self._light0 = (
+                m.light_diffuse.copy(),
+                m.light_ambient.copy(),
+                m.light_specular.copy(),
+                np.array(m.vis.headlight.ambient),
+                np.array(m.vis.headlight.diffuse),
+            )
+        d0, a0, s0, ha, hd = self._light0
+        m.light_diffuse[:] = d0 * k
+        m.light_ambient[:] = a0 * k
+        m.light_specular[:] = np.clip(s0 * k, 0.0, 1.0)
+        m.vis.headlight.ambient[:] = ha * k
+        m.vis.headlight.diffuse[:] = hd * k
+        self.lighting = k
+
+    def object_names(self) -> list[str]:
+        """Movable bodies: grasp objects and free desk items."""
+        names = [o.name for o in self.scene.grasp_objects]
+        for bench in [*self.scene.workbenches, self.scene.grasp_desk]:
+            if bench is not None:
+                names += [it.name for it in bench.items if it.free and it.name]
+        return names
+
+    def place_object(
+        self, name: str, position: Array, yaw: float = 0.0, velocity: Array | None = None
+    ) -> None:
+        """Put a free body at ``position`` (map, m) with heading ``yaw`` (rad) about map z and
+        linear ``velocity`` (m/s, default at rest). The object keeps its built-in tilt (lying
+        sticks stay lying). Kinematic: no physics step is taken (call :meth:`step`)."""
+        try:
+            jid = self.model.joint(f"{name}_free").id
+        except KeyError:
+            raise UnknownNameError("object", name, self.object_names()) from None
+        p = np.asarray(position, float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)) or not np.isfinite(yaw):
+            raise InvalidInputError(f"object position must be finite (3,), got {position}")
+        qa, da = self.model.jnt_qposadr[jid], self.model.jnt_dofadr[jid]
+        self.data.qpos[qa : qa + 3] = p
+        self.data.qpos[qa + 3 : qa + 7] = (np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2))
+        self.data.qvel[da : da + 6] = 0.0
+        if velocity is not None:
+            self.data.qvel[da : da + 3] = np.asarray(velocity, float)
+        mujoco.mj_forward(self.model, self.data)
+
+    def set_arm_configuration(self, q: Array) -> None:
+        """Teleport the arm to ``q`` (rad, (6,)) with zero velocity, holding it there: for
+        rendering views (training data), not for motion (use ``arm``)."""
+        q = self.arm._check(q)
+        self.data.qpos[self._arm_qadr] = q
+        self.data.qvel[self._arm_dadr] = 0.0
+        self.data.ctrl[self._arm_act] = q
+        self._motion = None
         mujoco.mj_forward(self.model, self.data)
 
     @property
@@ -414,6 +485,15 @@ class SimArm:
 
         w._motion = _ArmMotion(float(w.data.time), T, sample_noisy)
         w.step(T + settle)
+
+    def command(self, q: Array) -> None:
+        """Servo set-point: the joint position controllers track ``q`` (rad, (6,)) from now
+        on (a streaming command, as URScript ``servoj``); cancels any trajectory. Targets
+        outside the joint limits are refused. Step the world to let the arm move."""
+        q = self._check(q)
+        w = self._w
+        w._motion = None
+        w.data.ctrl[w._arm_act] = q
 
     def follow(
         self, times: Array, q_path: Array, record_hz: float | None = None

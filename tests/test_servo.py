@@ -1,0 +1,111 @@
+"""IBVS, null space and predictor against independent computations."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmpa.errors import InvalidInputError
+from mmpa.geometry import apply, exp_se3
+from mmpa.robot.description import default_robot
+from mmpa.robot.kinematics import jacobian, manipulability
+from mmpa.servo.ibvs import (
+    camera_velocity,
+    desired_point,
+    features,
+    interaction_matrix,
+    limit_velocity,
+    pinv,
+)
+from mmpa.servo.nullspace import (
+    manipulability_gradient,
+    null_space_projector,
+    null_space_velocity,
+)
+from mmpa.servo.predictor import ConstantVelocityKF, PredictorConfig
+
+
+def test_interaction_matrix_matches_finite_differences():
+    """ds/dt of (x, y, log Z) of a static point under a small camera motion."""
+    P = np.array([0.05, -0.08, 0.4])
+    L = interaction_matrix(*features(P)[:2], P[2])
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        xi = rng.normal(0, 1, 6)
+        h = 1e-6
+        # the camera moves by exp(h xi): the point in the new camera frame is T^-1 P
+        T = exp_se3(h * xi)
+        P_new = apply(np.linalg.inv(T), P)
+        ds = (features(P_new) - features(P)) / h
+        assert L @ xi == pytest.approx(ds, rel=1e-4, abs=1e-6)
+
+
+def test_camera_velocity_drives_error_to_zero():
+    P = np.array([0.06, 0.02, 0.5])
+    P_star = np.array([0.0, 0.1, 0.35])
+    dt = 0.02
+    for _ in range(300):
+        v = camera_velocity(P, P_star, gain=2.0)
+        P = P - v * dt  # camera translation moves the point the other way
+    assert features(P) == pytest.approx(features(P_star), abs=1e-4)
+
+
+def test_pinv_is_eq12_and_limits():
+    rng = np.random.default_rng(1)
+    J = rng.normal(size=(6, 6))
+    assert pinv(J) == pytest.approx(np.linalg.inv(J.T @ J) @ J.T)
+    Jw = rng.normal(size=(5, 6))
+    assert Jw @ pinv(Jw) == pytest.approx(np.eye(5), abs=1e-10)
+    assert pinv(Jw) == pytest.approx(np.linalg.pinv(Jw), abs=1e-10)
+    qd = np.array([2.0, -6.0, 1.0, 0.0, 0.0, 0.5])
+    lim = limit_velocity(qd, np.full(6, 3.0))
+    assert np.max(np.abs(lim)) == pytest.approx(3.0)
+    assert lim / np.linalg.norm(lim) == pytest.approx(qd / np.linalg.norm(qd))
+    with pytest.raises(InvalidInputError):
+        interaction_matrix(0.0, 0.0, 0.0)
+
+
+def test_desired_point_is_below_the_tcp():
+    rb = default_robot()
+    P = desired_point(rb.camera.T_flange_camera, rb.gripper.T_flange_tcp, 0.25)
+    # camera 0.095 m beside and 0.045 m along the flange z; TCP 0.15 m along z
+    assert P == pytest.approx([0.0, 0.095, 0.15 - 0.045 + 0.25])
+
+
+def test_null_space_motion_keeps_the_task_and_raises_manipulability():
+    rb = default_robot()
+    dh = rb.arm.dh
+    q = np.array([0.3, -1.6, 1.9, -1.9, -1.5708, 0.2])
+    T_tool = rb.gripper.T_flange_tcp
+    J = jacobian(dh, q, rb.camera.T_flange_camera)
+    Jt = J[:5]
+    N = null_space_projector(Jt)
+    assert Jt @ N == pytest.approx(np.zeros((5, 6)), abs=1e-9)
+    g = manipulability_gradient(dh, q, T_tool)
+    h = 1e-6
+    fd = (
+        manipulability(jacobian(dh, q + h * np.eye(6)[2], T_tool))
+        - manipulability(jacobian(dh, q - h * np.eye(6)[2], T_tool))
+    ) / (2 * h)
+    assert g[2] == pytest.approx(fd, rel=1e-3)
+    qd = null_space_velocity(dh, q, Jt, 1.0, T_tool)
+    assert Jt @ qd == pytest.approx(np.zeros(5), abs=1e-9)
+    w0 = manipulability(jacobian(dh, q, T_tool))
+    w1 = manipulability(jacobian(dh, q + 0.01 * qd / max(np.linalg.norm(qd), 1e-12), T_tool))
+    assert w1 > w0
+
+
+def test_kalman_filter_tracks_constant_velocity():
+    rng = np.random.default_rng(2)
+    kf = ConstantVelocityKF(PredictorConfig(accel_sigma=0.1))
+    v = np.array([0.2, -0.1, 0.0])
+    p0 = np.array([0.5, 0.1, -0.05])
+    dt = 0.05
+    for k in range(60):
+        kf.update(p0 + v * k * dt + rng.normal(0, 0.005, 3))
+        kf.predict(dt)
+    assert kf.velocity() == pytest.approx(v, abs=0.05)
+    t = 60 * dt
+    assert kf.position(ahead=0.5) == pytest.approx(p0 + v * (t + 0.5), abs=0.04)
+    with pytest.raises(InvalidInputError):
+        kf.update(np.array([np.nan, 0, 0]))
