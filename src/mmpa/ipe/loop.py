@@ -260,7 +260,7 @@ class IPE:
                     back = T_Bk_Ck @ make_T(np.eye(3), [0.0, 0.0, -cfg.retreat])
                     try:
                         q_next = self.camera_joints(back, q)
-                        prior = None
+                        # keep the prior: the wider view is registered from it first
                         continue
                     except UnreachableError:
                         pass
