@@ -50,7 +50,7 @@ class TeachConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    frames: int = Field(4, ge=1)  # captures averaged into X_i(O)
+    frames: int = Field(16, ge=1)  # captures averaged into X_i(O) (once per task: 0.5 s at 30 fps)
     min_depth: float = Field(0.2, gt=0)
     max_depth: float = Field(1.5, gt=0)
 
