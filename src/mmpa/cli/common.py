@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import NoReturn
+from pathlib import Path
+from typing import Annotated, NoReturn
 
 import typer
 from rich.console import Console
@@ -16,3 +17,12 @@ def fail(e: MMPAError) -> NoReturn:
     """Print ``e`` in red and exit with status 2 (the CLI's error code for bad input)."""
     console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
     raise typer.Exit(2)
+
+
+DbOpt = Annotated[
+    Path | None,
+    typer.Option(
+        "--db",
+        help="Task database (default: $MMPA_TASKS_DB or ~/.local/share/mmpa/tasks.db).",
+    ),
+]

@@ -11,10 +11,10 @@ os.environ.setdefault("MUJOCO_GL", "osmesa")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
 import typer
-from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from mmpa.cli.common import DbOpt, console, fail
 from mmpa.cli.perception import perception_app
 from mmpa.cli.tasks import tasks_app
 from mmpa.errors import MMPAError
@@ -31,15 +31,9 @@ sim_app = typer.Typer(help="The digital twin: pictures and checks.", no_args_is_
 app.add_typer(sim_app, name="sim")
 app.add_typer(tasks_app, name="tasks")
 app.add_typer(perception_app, name="perception")
-console = Console()
 
 ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="YAML config file.")]
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="Override: key=value (repeat).")]
-
-
-def _fail(e: MMPAError) -> None:
-    console.print(f"[bold red]error:[/] {e}")
-    raise typer.Exit(2)
 
 
 def _demo_config(config: Path | None, seed: int, set_: list[str] | None) -> DemoConfig:
@@ -91,7 +85,7 @@ def demo(
 
             summary = run_demo(cfg, out, progress)
     except MMPAError as e:
-        _fail(e)
+        fail(e)
     _show(summary, f"mmpa demo -> {out}")
     if not summary["reached"]:
         console.print("[yellow]the base did not reach the goal within the timeout[/]")
@@ -113,7 +107,7 @@ def sim_snapshot(
         cfg = _demo_config(config, seed, set_)
         summary = snapshot(cfg, site, out)
     except MMPAError as e:
-        _fail(e)
+        fail(e)
     _show(summary, f"snapshot of site {site} -> {out}")
 
 
@@ -163,14 +157,8 @@ def experiment(
                 progress=progress,
             )
     except MMPAError as e:
-        _fail(e)
+        fail(e)
     _show(outcome.summary, f"mmpa experiment {name} -> {out} (report.md, results.csv)")
-
-
-DbOpt = Annotated[
-    Path | None,
-    typer.Option("--db", help="Task database (default: $MMPA_TASKS_DB or ~/.local/share/mmpa)."),
-]
 
 
 def _mmpa_config(config: Path | None, seed: int, set_: list[str] | None):
@@ -199,7 +187,7 @@ def teach(
                 site, task, db=db, cfg=_mmpa_config(config, seed, set_), overwrite=overwrite
             )
     except MMPAError as e:
-        _fail(e)
+        fail(e)
     _show(summary, f"taught {task}")
 
 
@@ -230,7 +218,7 @@ def run_cmd(
                 tmma=tmma,
             )
     except MMPAError as e:
-        _fail(e)
+        fail(e)
     _show(summary, f"mmpa run {task}")
     if not summary.get("executed"):
         console.print(f"[yellow]not executed:[/] {summary.get('reason', '')}")

@@ -7,14 +7,13 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
+from mmpa.cli.common import console, fail
 from mmpa.errors import MMPAError
 
 __all__ = ["register"]
 
-console = Console()
 map_app = typer.Typer(help="Occupancy maps (ROS map_server format).", no_args_is_help=True)
 
 
@@ -54,8 +53,7 @@ def navigate_cmd(
                 cm = CostMap(twin_nav_map(world))
                 res = navigate(world, loc, grid, goal, NavigateConfig(timeout=timeout), costmap=cm)
     except MMPAError as e:
-        console.print(f"[bold red]error:[/] {e}")
-        raise typer.Exit(2) from None
+        fail(e)
     e = res.localization_error
     summary = {
         "from": start,
@@ -99,8 +97,7 @@ def map_export(
             grid = twin_map(world, resolution)
         path = save_map(grid, out)
     except MMPAError as e:
-        console.print(f"[bold red]error:[/] {e}")
-        raise typer.Exit(2) from None
+        fail(e)
     console.print(
         f"wrote {path} and {path.with_suffix('.pgm').name}: {grid.width} x {grid.height} cells, "
         f"{len(grid.reflectors)} reflectors"

@@ -9,20 +9,12 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from mmpa.cli.common import console, fail
+from mmpa.cli.common import DbOpt, console, fail
 from mmpa.errors import MMPAError
 
 tasks_app = typer.Typer(
     help="Taught tasks: list, show, export, import, delete.", no_args_is_help=True
 )
-
-DbOpt = Annotated[
-    Path | None,
-    typer.Option(
-        "--db",
-        help="Task database (default: $MMPA_TASKS_DB or ~/.local/share/mmpa/tasks.db).",
-    ),
-]
 
 
 def _fmt(v: np.ndarray, scale: float = 1.0, digits: int = 4) -> str:

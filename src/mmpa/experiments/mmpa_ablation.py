@@ -12,8 +12,8 @@ from typing import Literal
 import numpy as np
 
 from mmpa.experiments import paper000
-from mmpa.experiments.mmpa_common import PAPER_BETA, MMPAExperimentConfig, ipe_trials
-from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
+from mmpa.experiments.mmpa_common import PAPER_BETA, MMPAExperimentConfig, ipe_stats, ipe_trials
+from mmpa.experiments.runner import Context, Outcome, markdown_table
 
 PAPER = "paper 000 Appendix A, Tables A.1-A.3 (alpha) and A.4-A.6 (beta)"
 
@@ -53,11 +53,8 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     paper = paper000.TABLE_A_ALPHA if is_alpha else paper000.TABLE_A_BETA
     for site in cfg.sites:
         for lev in cfg.levels:
-            r = [x for x in rows if x["site"] == site and x["level"] == lev]
-            ok = [x for x in r if x["ipe_ok"]]
-            suc = len(ok) / len(r) if r else float("nan")
-            L = stats(x["iterations"] for x in ok)["mean"]
-            er, et = stats(x["E_R"] for x in ok), stats(x["E_t"] for x in ok)
+            g = ipe_stats([x for x in rows if x["site"] == site and x["level"] == lev])
+            suc, L, er, et = g["success"], g["iterations"]["mean"], g["E_R"], g["E_t"]
             p = paper[site][lev - 1]
             name = f"alpha{lev}" if is_alpha else f"beta{lev} = {paper000.BETAS[site][lev - 1]}"
             table.append(

@@ -367,6 +367,20 @@ def offset_row(truth: Array) -> dict[str, float]:
     }
 
 
+def ipe_stats(rows: list[dict]) -> dict:
+    """Success rate of a group of IPE trial rows, and iterations, E_R, E_t statistics (see
+    :func:`mmpa.experiments.runner.stats`) over its successful trials."""
+    from mmpa.experiments.runner import stats
+
+    ok = [x for x in rows if x["ipe_ok"]]
+    return {
+        "success": len(ok) / len(rows) if rows else float("nan"),
+        "iterations": stats(x["iterations"] for x in ok),
+        "E_R": stats(x["E_R"] for x in ok),
+        "E_t": stats(x["E_t"] for x in ok),
+    }
+
+
 def ipe_rows(ipe: IPEResult, truth: Array) -> tuple[dict, list[dict]]:
     """Per-trial IPE figures and per-iteration errors (Fig. 9)."""
     e_r, e_t = pose_errors(ipe.dT_B, truth)

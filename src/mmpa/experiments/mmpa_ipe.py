@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from mmpa.experiments import paper000
-from mmpa.experiments.mmpa_common import MMPAExperimentConfig, ipe_trials
+from mmpa.experiments.mmpa_common import MMPAExperimentConfig, ipe_stats, ipe_trials
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats, write_csv
 
 PAPER = "paper 000 Table 3, Fig. 8 and Fig. 9 (IPE accuracy, iterations, registration time)"
@@ -23,13 +23,9 @@ def summarize_sites(rows: list[dict], sites: list[str]) -> dict:
     out = {}
     for s in sites:
         r = [x for x in rows if x["site"] == s]
-        ok = [x for x in r if x["ipe_ok"]]
         out[s] = {
             "trials": len(r),
-            "success": len(ok) / len(r) if r else float("nan"),
-            "iterations": stats(x["iterations"] for x in ok),
-            "E_R": stats(x["E_R"] for x in ok),
-            "E_t": stats(x["E_t"] for x in ok),
+            **ipe_stats(r),
             "park_E_R": stats(x["park_E_R"] for x in r),
             "park_E_t": stats(x["park_E_t"] for x in r),
             "compute_s": stats(x["compute_s"] for x in r),

@@ -9,12 +9,11 @@ on the scene, then IPE runs from Table 2 parking offsets. The pattern to reprodu
 
 from __future__ import annotations
 
-import numpy as np
 from pydantic import Field
 
 from mmpa.experiments import paper000
-from mmpa.experiments.mmpa_common import MMPAExperimentConfig, ipe_trials
-from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
+from mmpa.experiments.mmpa_common import MMPAExperimentConfig, ipe_stats, ipe_trials
+from mmpa.experiments.runner import Context, Outcome, markdown_table
 from mmpa.sim.scene import DeskItem, SceneConfig, load_scene
 
 PAPER = "paper 000 Appendix A.3, Table A.7 (IPE on plain and textured scenes)"
@@ -92,14 +91,12 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     table, summary = [], {}
     for name in cfg.scenes:
         r = [x for x in rows if x["scene"] == name]
-        ok = [x for x in r if x["ipe_ok"]]
-        suc = len(ok) / len(r) if r else float("nan")
-        L = stats(x["iterations"] for x in ok)["mean"]
-        er, et = stats(x["E_R"] for x in ok), stats(x["E_t"] for x in ok)
+        g = ipe_stats(r)
+        suc, L, er, et = g["success"], g["iterations"]["mean"], g["E_R"], g["E_t"]
         # a wrong pose returned as True is the failure that matters: E_t above 1 cm
-        wrong = sum(1 for x in ok if x["E_t"] > 0.01)
+        wrong = sum(1 for x in r if x["ipe_ok"] and x["E_t"] > 0.01)
         p = paper000.TABLE_A7[name]
-        pe = (p[4] or np.nan) * 1e3 if p[4] is not None else float("nan")
+        pe = p[4] * 1e3 if p[4] is not None else float("nan")
         table.append(
             [
                 name,
