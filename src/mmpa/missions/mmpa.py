@@ -79,7 +79,7 @@ def teach(
     if len(cloud) < 1000:
         raise InvalidInputError(
             f"the camera sees only {len(cloud)} points at the sampling pose: point it at the "
-            "work area (within {cfg.min_depth}-{cfg.max_depth} m)"
+            f"work area (within {cfg.min_depth}-{cfg.max_depth} m)"
         )
     T_B_C = fk(robot.arm.dh, q_meas) @ robot.camera.T_flange_camera
     t, q, g, rate = record()
