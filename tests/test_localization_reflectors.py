@@ -118,6 +118,34 @@ def test_observer_fix_vs_truth(world: SimWorld) -> None:
     assert np.mean(errs) < 0.006 and max(errs) < 0.015
 
 
+def test_observer_sigmas_calibrated_against_truth(world: SimWorld) -> None:
+    """The range/bearing SDs the observer assigns to each reflector center must match the
+    errors measured against the TRUE reflectors: normalized errors with an RMS near 1 (neither
+    overconfident, which breaks the fusion, nor 5x pessimistic, which wastes the bearings)."""
+    mount = T_to_se2(world.nominal.lidar.T_base_link_laser)
+    obs = ReflectorObserver(world.map_reflectors, mount)
+    R = world.truth.reflector_positions()
+    zr, zb = [], []
+    for site in ("0", "1", "2"):
+        world.reset(site)
+        for _ in range(6):
+            world.step(0.1)
+            obs.observe(world.lidar.scan())
+            det = obs.last_detections  # base_link frame
+            T = world.truth.T_map_base_link()
+            d = (R - T[:2, 3]) @ T[:2, :2]  # true reflectors in base_link
+            pr, pb = np.hypot(d[:, 0], d[:, 1]), np.arctan2(d[:, 1], d[:, 0])
+            sr, sb = obs.sigmas(det.beams)
+            for j in range(len(det)):
+                k = int(np.argmin(np.linalg.norm(d - det.points[j], axis=1)))
+                zr.append((det.ranges[j] - pr[k]) / sr[j])
+                zb.append(np.angle(np.exp(1j * (det.bearings[j] - pb[k]))) / sb[j])
+    rms_r, rms_b = np.sqrt(np.mean(np.square(zr))), np.sqrt(np.mean(np.square(zb)))
+    assert len(zr) > 100
+    assert 0.4 < rms_r < 1.2, rms_r
+    assert 0.4 < rms_b < 1.2, rms_b
+
+
 def test_scan_bad_input() -> None:
     n = 5
     angles = dict(angle_min=0.0, angle_max=0.04, angle_increment=0.01, time_increment=0.0)

@@ -89,7 +89,10 @@ class ObserverConfig(BaseModel):
     identify: IdentifyConfig = IdentifyConfig()
     range_sigma_beam: float = Field(0.015, gt=0)  # m, lidar range noise per beam
     range_sigma_floor: float = Field(0.004, ge=0)  # m, map error + fit bias
-    bearing_sigma_floor: float = Field(0.002, ge=0)  # rad
+    # rad, bearing of one beam's edge (about the angular step, 0.25 deg); measured in the twin:
+    # bearing SD 0.5-0.6 mrad at 8-11 beams per reflector, 1.5-1.7 mrad at 4-5 beams
+    bearing_sigma_beam: float = Field(0.0044, gt=0)
+    bearing_sigma_floor: float = Field(0.0005, ge=0)  # rad
     outlier_sigmas: float = Field(3.5, gt=0)  # drop reflectors with larger normalized residual
     min_reflectors: int = Field(3, ge=3)
 
@@ -122,6 +125,17 @@ class ReflectorObserver:
         self.last_detections: ReflectorDetections = ReflectorDetections.empty()
         self.last_status = "none"
 
+    def sigmas(self, beams: np.ndarray) -> tuple[Array, Array]:
+        """Range and bearing SD (m, rad) of reflector centers fitted from ``beams`` (n,) hits:
+        ``sigma_r = floor_r + sigma_r_beam / sqrt(k)``, ``sigma_phi = floor_phi +
+        sigma_phi_beam / sqrt(k)`` (the fit averages ``k`` beams)."""
+        c = self.cfg
+        k = np.sqrt(np.maximum(np.asarray(beams, float), 1.0))
+        return (
+            c.range_sigma_floor + c.range_sigma_beam / k,
+            c.bearing_sigma_floor + c.bearing_sigma_beam / k,
+        )
+
     def observe(self, scan: LaserScan) -> ReflectorFix | None:
         """The fix of this scan, or None if fewer than ``min_reflectors`` are identified."""
         c = self.cfg
@@ -135,11 +149,7 @@ class ReflectorObserver:
         keep = ident.ids >= 0
         while keep.sum() >= c.min_reflectors:
             k = np.flatnonzero(keep)
-            beams = np.maximum(det.beams[k], 1)
-            sr = c.range_sigma_floor + c.range_sigma_beam / np.sqrt(beams)
-            sb = c.bearing_sigma_floor + (c.detection.radius + 0.01) / (
-                det.ranges[k] * np.sqrt(beams)
-            )
+            sr, sb = self.sigmas(det.beams[k])
             try:
                 tri = trilaterate(
                     self.landmarks[ident.ids[k]], det.ranges[k], det.bearings[k], sr, sb
@@ -182,7 +192,7 @@ class EnhancedConfig(BaseModel):
     kidnap_min_reflectors: int = Field(4, ge=3)  # only redundant fixes count toward re-seeding
     proposal_fraction: float = Field(0.1, ge=0, le=1)  # improvement: mixture proposal at mu_G
     track_partial: bool = True  # use 1-2 reflectors (associated by the estimate) when < 3
-    track_gate: float = Field(0.5, gt=0)  # m (odometry heading drifts ~0.05 rad per turn)
+    track_gate: float = Field(0.8, gt=0)  # m (odometry: ~56 mm / 56 mrad per 25 cm)
     track_pair_tol: float = Field(0.05, gt=0)  # m, detected vs map distance of tracked pairs
     track_max_turn: float = Field(0.15, gt=0)  # rad, largest heading change of a tracked fix
     track_sigma_range: float = Field(0.015, gt=0)  # m
@@ -249,6 +259,7 @@ class EnhancedAMCL(AMCL):
         self.last_fix: ReflectorFix | None = None
         self._far_fixes = 0
         self.kidnap_resets = 0
+        self.track_status = "none"  # why the last partial tracking fix was (not) made
 
     def _gate(self, fix: ReflectorFix) -> str:
         """``"ok"``, ``"outlier"`` or ``"reseed"`` for a fix (improvement). A fix farther than
@@ -290,6 +301,7 @@ class EnhancedAMCL(AMCL):
         pose = self.pose_at(odom_pose)
         di, li = self._associate(pose)
         if len(di) < 2:
+            self.track_status = "too_few_associated"
             return None
         det = self.observer.last_detections
         c = self.observer.cfg
@@ -298,26 +310,30 @@ class EnhancedAMCL(AMCL):
         i, j = np.triu_indices(len(di), 1)
         dd = np.abs(np.linalg.norm(P[i] - P[j], axis=1) - np.linalg.norm(L[i] - L[j], axis=1))
         if dd.max() > self.ecfg.track_pair_tol:
+            self.track_status = "pair_distance"
             return None
-        beams = np.maximum(det.beams[di], 1)
-        sr = c.range_sigma_floor + c.range_sigma_beam / np.sqrt(beams)
-        sb = c.bearing_sigma_floor + (c.detection.radius + 0.01) / (det.ranges[di] * np.sqrt(beams))
+        sr, sb = self.observer.sigmas(det.beams[di])
         try:
             tri = trilaterate(
                 self.observer.landmarks[li], det.ranges[di], det.bearings[di], sr, sb, initial=pose
             )
         except (ValueError, np.linalg.LinAlgError):
+            self.track_status = "degenerate"
             return None
         if not np.all(np.isfinite(tri.pose)) or np.hypot(*(tri.pose[:2] - pose[:2])) > 0.3:
+            self.track_status = "jump"
             return None
         if abs(float(_wrap(tri.pose[2] - pose[2]))) > self.ecfg.track_max_turn:
+            self.track_status = "turn"
             return None
         # consistency: every reflector within outlier_sigmas of the refined pose
         d = self.observer.landmarks[li] - tri.pose[:2]
         res_r = (np.linalg.norm(d, axis=1) - det.ranges[di]) / sr
         res_b = _wrap(np.arctan2(d[:, 1], d[:, 0]) - tri.pose[2] - det.bearings[di]) / sb
         if max(np.abs(res_r).max(), np.abs(res_b).max()) > c.outlier_sigmas:
+            self.track_status = "inconsistent"
             return None
+        self.track_status = "ok"
         return ReflectorFix(li, det.ranges[di], det.bearings[di], tri, len(det))
 
     def _partial_update(
