@@ -33,13 +33,16 @@ from mmpa.ipe.core import (
 from mmpa.registration import (
     IcpScale,
     Prepared,
+    ProjectiveConfig,
+    ProjectiveResult,
     Registration,
     RegistrationConfig,
     prepare,
+    refine_projective,
     register,
 )
 from mmpa.robot.description import RobotDescription
-from mmpa.robot.interfaces import Arm, Camera, PointCloud, mean_frame
+from mmpa.robot.interfaces import Arm, Camera, PointCloud, RGBDFrame, mean_frame
 from mmpa.robot.kinematics import fk, ik_nearest
 
 __all__ = ["IPE", "IPEConfig", "IPEIteration", "IPEResult", "capture_cloud"]
@@ -91,8 +94,12 @@ class IPEConfig(BaseModel):
     max_translation: float = Field(1.0, gt=0)  # m: larger |dT_B| is implausible -> False
     max_rotation: float = Field(np.deg2rad(60.0), gt=0)  # rad
     registration: RegistrationConfig = RegistrationConfig()
-    # beyond the paper: once converged, one more registration of the last view at a finer
-    # resolution (no voxel aliasing at 1 cm), starting from the converged dT_C; None: off
+    # beyond the paper: once converged, a projective point-to-plane refinement of the last
+    # view at full resolution on its depth image (no voxel aliasing; estimates the relative
+    # depth scale too), starting from the converged dT_C; None: off
+    projective: ProjectiveConfig | None = ProjectiveConfig()
+    # when the projective refinement is off or refused (e.g. a textured plane: point-to-plane
+    # alone is degenerate there), one more colored registration at 4 mm voxels; None: off
     final: RegistrationConfig | None = FINAL_REFINEMENT
 
     @field_validator("alpha")
@@ -128,7 +135,8 @@ class IPEResult:
     reason: str = ""
     iterations: list[IPEIteration] = field(default_factory=list)
     seconds_prepare: float = 0.0
-    final: Registration | None = None  # the finer last registration (when configured)
+    final: Registration | None = None  # the 4 mm fallback refinement (when it ran)
+    projective: ProjectiveResult | None = None  # the full-resolution refinement (when on)
     seconds_final: float = 0.0
 
     @property
@@ -152,8 +160,15 @@ class IPEResult:
 
 def capture_cloud(camera: Camera, frames: int, min_depth: float, max_depth: float) -> PointCloud:
     """Capture ``frames`` RGB-D frames, average them, deproject to a colored cloud."""
+    return capture(camera, frames, min_depth, max_depth)[1]
+
+
+def capture(
+    camera: Camera, frames: int, min_depth: float, max_depth: float
+) -> tuple[RGBDFrame, PointCloud]:
+    """The averaged frame of ``frames`` captures and its colored cloud."""
     frame = mean_frame([camera.capture() for _ in range(frames)])
-    return frame.to_point_cloud(min_depth=min_depth, max_depth=max_depth)
+    return frame, frame.to_point_cloud(min_depth=min_depth, max_depth=max_depth)
 
 
 Progress = Callable[[str, float], None]
@@ -222,7 +237,7 @@ class IPE:
             arm.move_joints(q_next)
             q = arm.joint_positions()
             t2 = time.perf_counter()
-            cloud = capture_cloud(camera, cfg.frames, cfg.min_depth, cfg.max_depth)
+            frame, cloud = capture(camera, cfg.frames, cfg.min_depth, cfg.max_depth)
             if not cfg.use_color:
                 cloud = PointCloud(cloud.points, None, cloud.frame)
             t3 = time.perf_counter()
@@ -275,13 +290,26 @@ class IPE:
             result.dT_B = dT_B
             if converged(reg.T, cfg.alpha):
                 result.ok = True
-                if cfg.final is not None and isinstance(taught, PointCloud):
+                if isinstance(taught, PointCloud):
                     t5 = time.perf_counter()
-                    fin = register(prepared(taught, cfg.final), cloud, cfg.final, init=reg.T)
+                    pr = None
+                    if cfg.projective is not None:
+                        pr = refine_projective(
+                            _source_points(taught, cfg),
+                            frame.depth,
+                            frame.intrinsics,
+                            reg.T,
+                            cfg.projective,
+                        )
+                        result.projective = pr
+                        if pr.ok:
+                            result.dT_B = delta_T_B(T_Bk_Ck, pr.T, T_Bo_Co)
+                    if (pr is None or not pr.ok) and cfg.final is not None:
+                        fin = register(prepared(taught, cfg.final), cloud, cfg.final, init=reg.T)
+                        result.final = fin
+                        if fin.ok:
+                            result.dT_B = delta_T_B(T_Bk_Ck, fin.T, T_Bo_Co)
                     result.seconds_final = time.perf_counter() - t5
-                    result.final = fin
-                    if fin.ok:
-                        result.dT_B = delta_T_B(T_Bk_Ck, fin.T, T_Bo_Co)
                 return result
             if k == cfg.beta:
                 break
@@ -298,6 +326,13 @@ class IPE:
         )
         result.dT_B = None
         return result
+
+
+def _source_points(taught: PointCloud, cfg: IPEConfig) -> Array:
+    """The taught points inside the depth crop (the source of the projective refinement)."""
+    p = np.asarray(taught.points, float)
+    z = p[:, 2]
+    return p[(z >= cfg.min_depth) & (z <= cfg.max_depth)]
 
 
 _COLORLESS: list[tuple[PointCloud, PointCloud]] = []

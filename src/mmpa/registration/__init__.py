@@ -3,7 +3,8 @@
 ``register(source, target, cfg, init=None) -> Registration`` estimates ``T_target_source``
 (``p_target = T p_source``); ``prepare`` preprocesses a cloud once for reuse. See
 :mod:`mmpa.registration.pipeline` for the method and :class:`RegistrationConfig` for the
-parameters.
+parameters. ``refine_projective`` refines a close pose at full resolution against an organized
+depth image (:mod:`mmpa.registration.projective`).
 """
 
 from mmpa.registration.config import IcpScale, RegistrationConfig
@@ -14,13 +15,25 @@ from mmpa.registration.pipeline import (
     prepare,
     register,
 )
+from mmpa.registration.projective import (
+    ProjectiveConfig,
+    ProjectiveResult,
+    normal_map,
+    refine_projective,
+    vertex_map,
+)
 
 __all__ = [
     "IcpScale",
     "Prepared",
+    "ProjectiveConfig",
+    "ProjectiveResult",
     "Registration",
     "RegistrationConfig",
     "information_matrix",
+    "normal_map",
     "prepare",
+    "refine_projective",
     "register",
+    "vertex_map",
 ]
