@@ -125,7 +125,7 @@ def test_scenes_ablation_refuses_the_pure_color_plane(tmp_path):
 @pytest.mark.slow
 def test_ipe_and_path_targets_at_every_site(tmp_path):
     """Issue 3 targets on a small sample: IPE success 1.0, mean E_t <= 2 mm, E_R <= 0.005;
-    needle tip mean <= 1 mm (target 0.5 mm; see the note), TMMA tens of mm."""
+    needle tip mean <= 0.5 mm and max <= 1.5 mm, TMMA tens of mm."""
     from mmpa.experiments.runner import run_experiment
 
     out = run_experiment("path-accuracy", tmp_path, trials=5)
@@ -134,5 +134,20 @@ def test_ipe_and_path_targets_at_every_site(tmp_path):
         assert all(x["ipe_ok"] for x in r), [x["reason"] for x in r]
         assert np.mean([x["E_t"] for x in r]) <= 2e-3
         assert np.mean([x["E_R"] for x in r]) <= 0.005
-        assert np.mean([x["mmpa_mm"] for x in r]) <= 1.0
+        tips = [x["mmpa_mm"] for x in r if x["plan_ok"]]
+        assert np.mean(tips) <= 0.5 and np.max(tips) <= 1.5
         assert np.mean([x["tmma_mm"] for x in r]) >= 20.0
+
+
+def test_site2_prime_parking_tilts_like_table2(tmp_path):
+    """Sampled parking at Site 2' gets z, roll and pitch from the bump; they must stay in the
+    paper's range (Table 2: tz -4 +- 5 mm, pitch 0.8 +- 2.7 deg), not lift the drive wheels
+    onto the bump (the old placement: tz -63 mm, pitch 5.7 deg)."""
+    from mmpa.experiments.runner import run_experiment
+
+    out = run_experiment("parking", tmp_path, trials=12, overrides=["sites=[\"2'\"]"])
+    tz = np.array([r["park_tz"] for r in out.rows])
+    pitch = np.array([r["park_p_deg"] for r in out.rows])
+    assert abs(tz.mean()) < 0.015 and tz.std() < 0.02
+    assert abs(pitch.mean()) < 2.5 and np.abs(pitch).max() < 8.0
+    assert np.abs(pitch).max() > 0.3  # the bump does tilt the base
