@@ -127,6 +127,9 @@ class IPEIteration:
     seconds_move: float
     seconds_capture: float
     seconds_register: float
+    # the projective refinement of this view (when on and the registration succeeded); when
+    # ok, ``dT_B`` and ``difference`` come from it instead of ``registration.T``
+    projective: ProjectiveResult | None = None
 
 
 @dataclass
@@ -276,10 +279,24 @@ class IPE:
                     reg = register(source, cloud, cfg.registration)
             else:
                 reg = register(source, cloud, cfg.registration, init=init)
+            # beyond the paper: refine every accepted view at full resolution (the 1 cm voxel
+            # registration has a 1-3 mm aliasing bias that can keep the loop from meeting alpha)
+            pr = None
+            dT_C = reg.T
+            if reg.ok and cfg.projective is not None and isinstance(taught, PointCloud):
+                pr = refine_projective(
+                    _source_points(taught, cfg),
+                    frame.depth,
+                    frame.intrinsics,
+                    reg.T,
+                    cfg.projective,
+                )
+                if pr.ok:
+                    dT_C = pr.T
             t4 = time.perf_counter()
-            dT_B = delta_T_B(T_Bk_Ck, reg.T, T_Bo_Co) if reg.ok else None
+            dT_B = delta_T_B(T_Bk_Ck, dT_C, T_Bo_Co) if reg.ok else None
             it = IPEIteration(
-                k, q, T_Bk_Ck, reg, dT_B, pose_difference(reg.T), t2 - t1, t3 - t2, t4 - t3
+                k, q, T_Bk_Ck, reg, dT_B, pose_difference(dT_C), t2 - t1, t3 - t2, t4 - t3, pr
             )
             result.iterations.append(it)
             if not reg.ok or dT_B is None:
@@ -303,22 +320,11 @@ class IPE:
                 )
                 return result
             result.dT_B = dT_B
-            if converged(reg.T, cfg.alpha):
+            if converged(dT_C, cfg.alpha):
                 result.ok = True
+                result.projective = pr  # dT_B above already comes from it when ok
                 if isinstance(taught, PointCloud):
                     t5 = time.perf_counter()
-                    pr = None
-                    if cfg.projective is not None:
-                        pr = refine_projective(
-                            _source_points(taught, cfg),
-                            frame.depth,
-                            frame.intrinsics,
-                            reg.T,
-                            cfg.projective,
-                        )
-                        result.projective = pr
-                        if pr.ok:
-                            result.dT_B = delta_T_B(T_Bk_Ck, pr.T, T_Bo_Co)
                     if (pr is None or not pr.ok) and cfg.final is not None:
                         fin = register(prepared(taught, cfg.final), cloud, cfg.final, init=reg.T)
                         result.final = fin
