@@ -216,9 +216,7 @@ def test_enhanced_with_one_reflector_survives_an_odometry_heading_jump(world, gr
         L = world.truth.reflector_positions()
         keep = int(np.argmin(np.linalg.norm(L - eye, axis=1)))
         u = (eye - L) / np.linalg.norm(eye - L, axis=1)[:, None]
-        world.lidar.occluders = [
-            (*(L[i] + 0.55 * u[i]), 0.2) for i in range(len(L)) if i != keep
-        ]
+        world.lidar.occluders = [(*(L[i] + 0.55 * u[i]), 0.2) for i in range(len(L)) if i != keep]
         try:
             scan = world.lidar.scan()
             jump = odom.copy()
