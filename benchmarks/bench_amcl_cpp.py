@@ -1,22 +1,34 @@
 """Nav2-derived AMCL C++ (pip package ``amcl``) on the same map and scans as our AMCL.
 
-Two steps, because ``amcl`` is not a dependency of mmpa:
+Two steps, because ``amcl`` is not a dependency of mmpa (keep it in a throwaway venv):
 
     .venv/bin/python benchmarks/bench_amcl_cpp.py record /tmp/amcl_scans.npz
-    <env with numpy + amcl>/bin/python benchmarks/bench_amcl_cpp.py replay /tmp/amcl_scans.npz
+    python3 -m venv /tmp/amclvenv && /tmp/amclvenv/bin/pip install amcl numpy
+    /tmp/amclvenv/bin/python benchmarks/bench_amcl_cpp.py replay /tmp/amcl_scans.npz
 
-``record`` drives the twin on a short loop and stores the occupancy grid, the lidar mount, the
-odometry and the scans (and times our AMCL on them, 2000 particles / 60 beams); ``replay``
-feeds the same data to the C++ filter and prints its median update time and final error.
+``record`` drives the twin on a short loop (60 scans at 5 Hz) and stores the occupancy grid,
+the lidar mount, the odometry and the scans, and times OUR AMCL on them (2000 particles fixed,
+60 beams, Nav2 defaults otherwise) with both laser models. ``replay`` feeds the same data to
+the C++ filter and prints its median update time and final position error.
+
+What the C++ side is: ``amcl`` 0.1.2 (nanobind bindings of Nav2's ``pf`` library, the
+``DifferentialMotionModel`` and the ``BeamModel``). It compiles in the BEAM model only (no
+likelihood field), its ``update`` runs the filter on every call (no ``update_min_d`` gating,
+like our ``force=True``), and it takes a ``0/100/-1`` grid with rows along ``y``. So the
+like-for-like figure is our beam model against it; our likelihood field is printed beside.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 import time
 
 import numpy as np
+
+N_PARTICLES = 2000
+MAX_BEAMS = 60
 
 
 def record(path: str) -> None:
@@ -37,20 +49,27 @@ def record(path: str) -> None:
             truth.append(w.truth.base_pose2d())
         w.base.stop()
         s0 = w.lidar.scan()
-    cfg = AMCLConfig(min_particles=2000, max_particles=2000, max_beams=60)
-    amcl = AMCL(grid, lp, cfg, np.random.default_rng(0))
-    amcl.set_initial_pose(truth[0] - (np.asarray(odo[0]) - odo[0]))
-    ts = []
-    import dataclasses
-
-    for o, r in zip(odo, scans, strict=True):
-        sc = dataclasses.replace(s0, ranges=r)
-        t = time.perf_counter()
-        amcl.update(o, sc, force=True)
-        ts.append(time.perf_counter() - t)
-    e = amcl.pose_at(odo[-1]) - truth[-1]
-    err = np.hypot(*e[:2]) * 100
-    print(f"mmpa AMCL: {1000 * np.median(ts):.2f} ms median update, final error {err:.1f} cm")
+    for model in ("likelihood_field", "beam"):
+        cfg = AMCLConfig(
+            min_particles=N_PARTICLES,
+            max_particles=N_PARTICLES,
+            max_beams=MAX_BEAMS,
+            laser_model_type=model,  # type: ignore[arg-type]
+        )
+        amcl = AMCL(grid, lp, cfg, np.random.default_rng(0))
+        amcl.set_initial_pose(truth[0])
+        ts = []
+        for o, r in zip(odo, scans, strict=True):
+            sc = dataclasses.replace(s0, ranges=r)
+            t = time.perf_counter()
+            amcl.update(o, sc, force=True)
+            ts.append(time.perf_counter() - t)
+        e = amcl.pose_at(odo[-1]) - truth[-1]
+        print(
+            f"mmpa AMCL ({model}, {N_PARTICLES} particles, {MAX_BEAMS} beams, "
+            f"{len(ts)} scans): {1000 * np.median(ts):.2f} ms median update, "
+            f"final error {100 * np.hypot(*e[:2]):.1f} cm"
+        )
     np.savez(
         path,
         occ=grid.data,
@@ -63,6 +82,7 @@ def record(path: str) -> None:
         range_max=s0.range_max,
         truth=np.array(truth),
     )
+    print(f"recorded {len(odo)} scans, grid {grid.width} x {grid.height} -> {path}")
 
 
 def replay(path: str) -> None:
@@ -70,18 +90,19 @@ def replay(path: str) -> None:
 
     d = np.load(path)
     occ = d["occ"]
-    # ROS amcl map_t cell states: -1 free, 0 unknown, +1 occupied; rows are y
-    state = np.where(occ >= 65, 1, np.where(occ < 0, 0, -1))
+    # amcl.OccupancyGrid data: 0 free, 100 occupied, -1 unknown; list rows are y (size_y)
+    state = np.where(occ >= 65, 100, np.where(occ < 0, -1, 0)).astype(int)
     grid = amcl.create_occupancy_grid_from_list(
         state.tolist(), float(d["res"]), float(d["origin"][0]), float(d["origin"][1])
     )
     f = amcl.AMCL(
-        2000,
-        2000,
-        0.0,
-        0.0,
-        amcl.MotionParameters(0.2, 0.2, 0.2, 0.2, 0.2),
-        amcl.LaserParameters(0.5, 0.05, 0.05, 0.5, 0.2, 0.1, 0.05, 60),
+        N_PARTICLES,
+        N_PARTICLES,
+        0.0,  # alpha_slow (Nav2 default 0: no random recovery particles)
+        0.0,  # alpha_fast
+        amcl.MotionParameters(0.2, 0.2, 0.2, 0.2, 0.2),  # Nav2 alpha1..alpha5
+        # z_hit, z_short, z_max, z_rand, sigma_hit, lambda_short, chi_outlier, max_beams
+        amcl.LaserParameters(0.5, 0.05, 0.05, 0.5, 0.2, 0.1, 0.05, MAX_BEAMS),
         "differential",
     )
     f.set_map(grid)
@@ -91,17 +112,21 @@ def replay(path: str) -> None:
         amcl.create_diagonal_covariance(0.25, 0.25, 0.068),
     )
     ts = []
+    rmax = float(d["range_max"])
     for o, r in zip(d["odom"], d["ranges"], strict=True):
         ok = np.isfinite(r)
-        pairs = np.column_stack([np.where(ok, r, float(d["range_max"])), d["angles"]]).tolist()
-        sc = amcl.create_laser_scan_from_list(pairs, float(d["range_max"]))
+        pairs = np.column_stack([np.where(ok, r, rmax), d["angles"]]).tolist()
+        sc = amcl.create_laser_scan_from_list(pairs, rmax)
         t = time.perf_counter()
         f.update(sc, amcl.Vector3D(*map(float, o)))
         ts.append(time.perf_counter() - t)
-    p = f.pose
+    p = f.get_pose_mean()
     e = np.array([p.x, p.y]) - d["truth"][-1][:2]
-    err = np.hypot(*e) * 100
-    print(f"C++ AMCL (pip amcl): {1000 * np.median(ts):.2f} ms median update, error {err:.1f} cm")
+    print(
+        f"C++ AMCL (pip amcl 0.1.2, Nav2 pf + BeamModel, {N_PARTICLES} particles, "
+        f"{MAX_BEAMS} beams, {len(ts)} scans): {1000 * np.median(ts):.2f} ms median update, "
+        f"final error {100 * np.hypot(*e):.1f} cm"
+    )
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import os
+import resource
 import time
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
@@ -46,10 +47,19 @@ def main() -> None:
         enh.set_initial_pose(w.truth.base_pose2d())
         t_enh = _median_ms(lambda: enh.update(odom, scan, force=True))
         t_obs = _median_ms(lambda: enh.observer.observe(scan))
+        r, a = amcl._beams(scan, 90)
+        t_prob = _median_ms(lambda: amcl.log_likelihood_field(amcl.particles, r, a, 0.03, 0.025))
+        beam = AMCL(grid, lp, cfg.model_copy(update={"laser_model_type": "beam"}))
+        beam.set_initial_pose(w.truth.base_pose2d())
+        t_beam = _median_ms(lambda: beam.update(odom, scan, force=True), n=10)
+    print(f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     print(f"AMCL update (2000 particles, 60 beams, likelihood field): {t_amcl:.2f} ms median")
     print(f"  of which the likelihood field itself: {t_lf:.2f} ms")
     print(f"enhanced AMCL update (incl. reflector observation): {t_enh:.2f} ms median")
     print(f"  reflector detection + triangle matching + trilateration: {t_obs:.2f} ms")
+    print(f"  product-form likelihood field (< 3 reflectors, 90 beams): {t_prob:.2f} ms")
+    print(f"AMCL update with the beam model (2000 particles, 60 beams): {t_beam:.1f} ms median")
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     big = rasterize([Box2D((0.0, 0.0), (100.0, 0.1))], (-50, -50, 50, 50), 0.05)
     t = time.perf_counter()
     a = AMCL(big, np.zeros(3), AMCLConfig(), np.random.default_rng(0))
@@ -61,7 +71,9 @@ def main() -> None:
     print(f"  likelihood table {a._pz3_table().nbytes / mib:.1f} MiB (built on the first scan),")
     print(f"  free-cell index {a._free_cells.nbytes / mib:.1f} MiB; set-up {t_build:.2f} s")
     print(f"  total without the table {mb:.1f} MiB")
-    print("Nav2 AMCL C++ reference: not run (no ROS / nav2_amcl build on this machine).")
+    rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"  peak RSS of this process: {rss0:.0f} MiB before the big map, {rss1:.0f} MiB after")
+    print("Nav2 AMCL C++ (pip amcl, beam model only): see benchmarks/bench_amcl_cpp.py")
 
 
 if __name__ == "__main__":

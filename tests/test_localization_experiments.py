@@ -39,5 +39,7 @@ def test_reflector_dropout_small(tmp_path) -> None:
     tri, enh = s["methods"]["trilateration"], s["methods"]["enhanced"]
     # trilateration alone loses the robot while the reflectors are hidden; ours does not
     assert tri["err_peak_during_mm"] > 300 and enh["err_mean_during_mm"] < 100
+    # no spike: 2 reflectors left (one sometimes cut by a person), the error stays mm-level
+    assert enh["err_p95_during_mm"] < 15 and enh["err_peak_during_mm"] < 30, enh
     assert enh["err_before_mm"] < 10
     assert s["visible"]["9"]["enhanced_err_mm"] < 6

@@ -168,3 +168,78 @@ def test_scan_bad_input() -> None:
         intensities=np.zeros(n),
     )
     assert len(detect_reflectors(no_int)) == 0
+
+
+def _synthetic_scan(ranges: np.ndarray, intens: np.ndarray, full: bool = False) -> LaserScan:
+    n = len(ranges)
+    inc = 2 * np.pi / n if full else np.deg2rad(0.25)
+    return LaserScan(
+        angle_min=-np.pi if full else 0.0,
+        angle_max=(-np.pi if full else 0.0) + inc * (n - 1),
+        angle_increment=inc,
+        time_increment=0.0,
+        scan_time=0.1,
+        range_min=0.1,
+        range_max=20.0,
+        ranges=ranges,
+        intensities=intens,
+    )
+
+
+def test_occluded_reflector_is_flagged() -> None:
+    r = np.full(40, 5.0)
+    inten = np.full(40, 200.0)
+    r[10:15], inten[10:15] = 3.0, 3000.0  # a reflector, 5 beams
+    free = detect_reflectors(_synthetic_scan(r, inten))
+    assert len(free) == 1 and not free.cut[0]
+    r2 = r.copy()
+    r2[15] = 2.6  # a person right next to it, 40 cm closer: the cluster is cut
+    cut = detect_reflectors(_synthetic_scan(r2, inten))
+    assert len(cut) == 1 and cut.cut[0]
+    r3 = r.copy()
+    r3[16] = 3.05  # a surface just behind the reflector's front (within the margin): not cut
+    assert not detect_reflectors(_synthetic_scan(r3, inten)).cut[0]
+    # a cluster touching the edge of a partial scan may be cut by the field of view
+    r4, i4 = r.copy(), inten.copy()
+    r4[:3], i4[:3] = 3.0, 3000.0
+    edge = detect_reflectors(_synthetic_scan(r4, i4))
+    assert edge.cut.tolist() == [True, False]
+    # a full-circle scan (1440 beams) wraps: a cluster across its seam is whole
+    rf, inf_ = np.full(1440, 5.0), np.full(1440, 200.0)
+    rf[[-2, -1, 0, 1]], inf_[[-2, -1, 0, 1]] = 3.0, 3000.0
+    full = detect_reflectors(_synthetic_scan(rf, inf_, full=True))
+    assert len(full) == 1 and full.beams[0] == 4 and not full.cut[0]
+
+
+def test_occlusion_in_the_twin_and_the_observer_drops_it(world: SimWorld) -> None:
+    # (at sites 0 and 1 scene objects cut one reflector each, rightly flagged: 25 / 12 mm off)
+    world.reset("2")
+    mount = T_to_se2(world.nominal.lidar.T_base_link_laser)
+    radius = world.scene.reflectors.radius
+    cfg = DetectionConfig(radius=radius)
+    det = detect_reflectors(world.lidar.scan(), cfg)
+    assert len(det) >= 7 and not det.cut.any()  # nothing in front at site 2: no flag
+    # a person 35 cm in front of reflector 0, shifted sideways by its radius: its edge cuts
+    # the line of sight through the reflector's center
+    eye = world.truth.base_pose2d()[:2]
+    p = world.truth.reflector_positions()[0]
+    u = (eye - p) / np.linalg.norm(eye - p)
+    nrm = np.array([-u[1], u[0]])
+    c = p + 0.35 * u + 0.2 * nrm
+    world.lidar.occluders = [(float(c[0]), float(c[1]), 0.2)]
+    try:
+        scan = world.lidar.scan()
+    finally:
+        world.lidar.occluders = []
+    det = detect_reflectors(scan, cfg).transformed(mount)
+    T = world.truth.T_map_base_link()
+    pts = det.points @ T[:2, :2].T + T[:2, 3]
+    d0 = np.linalg.norm(pts - p, axis=1)
+    assert d0.min() < 0.1 and det.cut[np.argmin(d0)]  # reflector 0 is seen, and flagged
+    assert det.cut.sum() == 1
+    obs = ReflectorObserver(world.map_reflectors, mount)
+    obs.cfg.detection.radius = radius
+    obs.observe(scan)
+    assert obs.last_occluded == 1 and len(obs.last_detections) == len(det) - 1
+    kept = obs.last_detections.points @ T[:2, :2].T + T[:2, 3]
+    assert np.linalg.norm(kept - p, axis=1).min() > 0.1

@@ -36,6 +36,19 @@ Interpretations (the paper leaves them open):
   still detected are associated with landmarks through the current estimate (gate
   ``track_gate``). Two or more give a pose by Gauss-Newton on their ranges and bearings,
   used as ``mu_G``; a single one weights the particles by its range/bearing likelihood.
+- occluded reflectors (improvement): a reflector cut by something in front of it (a person
+  at its edge, :func:`~mmpa.localization.reflectors.detect_reflectors`'s ``occluded``) is
+  not used; its fitted center is off by up to the radius (17-58 mm measured in the twin).
+- sharp laser with < 3 reflectors (improvement): Nav2's likelihood field ``1 + sum pz^3``
+  with ``sigma_hit = 0.2`` hardly tells poses 5 cm / 20 mrad apart, and the twin's odometry
+  jumps by ~56 mm / 56 mrad (SD) each time it closes a 25 cm segment. While a fix is
+  tracked from 2 reflectors, or only 1 or none is seen, the laser weight is the tempered
+  product-form field ``exp(partial_laser_power * log p)``
+  (:meth:`AMCL.log_likelihood_field`, bilinear, ``partial_laser_beams`` beams); with one
+  reflector part of the particles are drawn on the poses its range and bearing allow
+  (heading spread ``partial_heading_sigma``), with none (and a converged cloud) around the
+  odometry prediction, so that an odometry heading jump is covered and the laser picks the
+  heading. Tracked fixes draw only ``track_inject_scale`` of the proposal and injection.
 - mixture proposal (improvement): before weighting, ``proposal_fraction`` of the predicted
   particles are redrawn from ``N(mu_G, Sigma)``, so that a cloud spread by the motion model
   (Nav2's alphas are 0.2) still holds particles where the fix is; without it the sharp
@@ -95,6 +108,9 @@ class ObserverConfig(BaseModel):
     bearing_sigma_floor: float = Field(0.0005, ge=0)  # rad
     outlier_sigmas: float = Field(3.5, gt=0)  # drop reflectors with larger normalized residual
     min_reflectors: int = Field(3, ge=3)
+    # improvement: reflectors cut by something in front of them (a person) are not used; their
+    # fitted centers are off by up to the radius (measured in the twin: 17-58 mm at 1-4 beams)
+    drop_occluded: bool = True
 
 
 @dataclass(frozen=True)
@@ -123,6 +139,7 @@ class ReflectorObserver:
         self.library = TriangleLibrary(self.landmarks)
         self.laser_pose = np.asarray(laser_pose, float).reshape(3)
         self.last_detections: ReflectorDetections = ReflectorDetections.empty()
+        self.last_occluded = 0  # detections of the last scan dropped as occluded
         self.last_status = "none"
 
     def sigmas(self, beams: np.ndarray) -> tuple[Array, Array]:
@@ -140,6 +157,9 @@ class ReflectorObserver:
         """The fix of this scan, or None if fewer than ``min_reflectors`` are identified."""
         c = self.cfg
         det = detect_reflectors(scan, c.detection).transformed(self.laser_pose)
+        self.last_occluded = int(det.cut.sum())
+        if c.drop_occluded and self.last_occluded:
+            det = det.select(~det.cut)
         self.last_detections = det
         if len(det) < c.min_reflectors:
             self.last_status = "too_few"
@@ -194,9 +214,27 @@ class EnhancedConfig(BaseModel):
     track_partial: bool = True  # use 1-2 reflectors (associated by the estimate) when < 3
     track_gate: float = Field(0.8, gt=0)  # m (odometry: ~56 mm / 56 mrad per 25 cm)
     track_pair_tol: float = Field(0.05, gt=0)  # m, detected vs map distance of tracked pairs
-    track_max_turn: float = Field(0.15, gt=0)  # rad, largest heading change of a tracked fix
+    track_max_turn: float = Field(0.3, gt=0)  # rad, largest heading change of a tracked fix
     track_sigma_range: float = Field(0.015, gt=0)  # m
     track_sigma_bearing: float = Field(0.01, gt=0)  # rad
+    # proposal + injection at tracked (2-reflector) fixes scaled down: their mu_G is weaker
+    # than a 3+ reflector fix, the laser and the position weight do the rest
+    track_inject_scale: float = Field(0.3, ge=0, le=1)
+    # improvement: with < 3 reflectors the laser is weighted with the product-form likelihood
+    # field (sharp; Nav2's sum of cubes hardly tells 5 cm apart) on more beams, tempered by
+    # ``partial_laser_power`` because neighbouring beams are not independent
+    partial_laser: bool = True
+    partial_laser_sigma: float = Field(0.03, gt=0)  # m (the map's 5 cm cells)
+    partial_laser_beams: int = Field(90, ge=2)
+    partial_laser_offset: float = Field(0.5, ge=0, le=1)  # cells: surfaces at the cell edge
+    partial_laser_power: float = Field(0.6, gt=0, le=1)
+    # one reflector: this fraction of the particles is drawn on the poses it allows (its range
+    # and bearing, heading spread by ``partial_heading_sigma``), so that an odometry heading
+    # jump (the twin's closes a segment with ~56 mrad SD) is still covered by particles
+    partial_proposal_fraction: float = Field(0.3, ge=0, le=1)
+    partial_heading_sigma: float = Field(0.15, gt=0)  # rad
+    partial_position_sigma: float = Field(0.02, gt=0)  # m, no reflector: proposal spread
+    partial_converged_sd: float = Field(0.1, gt=0)  # m, no reflector: laser-only tracking below
 
     @classmethod
     def paper(cls) -> EnhancedConfig:
@@ -209,6 +247,7 @@ class EnhancedConfig(BaseModel):
             kidnap_fixes=0,
             track_partial=False,
             proposal_fraction=0.0,
+            partial_laser=False,
         )
 
 
@@ -260,6 +299,20 @@ class EnhancedAMCL(AMCL):
         self._far_fixes = 0
         self.kidnap_resets = 0
         self.track_status = "none"  # why the last partial tracking fix was (not) made
+
+    def _laser_weights(self, scan: LaserScan, partial: bool) -> Array:
+        """Laser likelihood of every particle: Nav2's likelihood field, or with ``partial`` (and
+        ``partial_laser``) the tempered product-form field ``exp(power (log p - max log p))``
+        (:meth:`AMCL.log_likelihood_field`)."""
+        e = self.ecfg
+        if not (partial and e.partial_laser):
+            return self.measurement_weights(self.particles, scan)
+        ranges, angles = self._beams(scan, e.partial_laser_beams)
+        if ranges.size == 0:
+            return np.ones(len(self.particles))
+        off = e.partial_laser_offset * self.grid.resolution
+        ll = self.log_likelihood_field(self.particles, ranges, angles, e.partial_laser_sigma, off)
+        return np.exp(e.partial_laser_power * (ll - ll.max()))
 
     def _gate(self, fix: ReflectorFix) -> str:
         """``"ok"``, ``"outlier"`` or ``"reseed"`` for a fix (improvement). A fix farther than
@@ -339,18 +392,44 @@ class EnhancedAMCL(AMCL):
     def _partial_update(
         self, odom_pose: Array, scan: LaserScan, force: bool
     ) -> PoseEstimate | None:
-        """Improvement for a single reflector in sight: associated with its landmark through
-        the current estimate, its range and bearing weight the particles together with the
-        laser (no fix, no injection)."""
+        """Improvement for fewer than two usable reflectors, every scan (no update thresholds).
+
+        - one reflector, associated with its landmark through the current estimate: its range
+          and bearing weight the particles together with the sharp laser likelihood
+          (:meth:`_laser_weights`); ``partial_proposal_fraction`` of the particles are first
+          drawn on the poses the reflector allows (heading ``N(theta_prior,
+          partial_heading_sigma)``, position from the landmark, range and bearing);
+        - none, while the filter is converged (position SD < ``partial_converged_sd``): the
+          sharp laser likelihood alone, with that fraction of the particles' headings spread
+          by ``partial_heading_sigma`` and positions by ``partial_position_sigma`` (an odometry
+          heading jump must be covered);
+        - otherwise None: the caller runs plain AMCL (Algorithm 1, lines 4-10).
+
+        No fix, no injection."""
         e = self.ecfg
-        if not (force or e.update_when_stationary or self._should_update(odom_pose)):
-            return None
-        di, li = self._associate(self.pose_at(odom_pose))  # before predict: moved by odometry
+        prior = self.pose_at(odom_pose)  # before predict: moved by odometry
+        di, li = self._associate(prior)
         if len(di) == 0:
-            return None
+            est = self._current(updated=False)
+            if float(np.trace(est.cov[:2, :2])) > e.partial_converged_sd**2:
+                return None
         self.predict(odom_pose)
         det = self.observer.last_detections
         L = self.observer.landmarks[li]
+        k = round(e.partial_proposal_fraction * len(self.particles))
+        if k > 0:
+            idx = self.rng.choice(len(self.particles), k, replace=False)
+            th = prior[2] + e.partial_heading_sigma * self.rng.standard_normal(k)
+            if len(di):  # on the circle of poses that see the landmark at this range/bearing
+                r = det.ranges[di[0]] + e.track_sigma_range * self.rng.standard_normal(k)
+                b = det.bearings[di[0]] + e.track_sigma_bearing * self.rng.standard_normal(k)
+                self.particles[idx, 0] = L[0, 0] - r * np.cos(th + b)
+                self.particles[idx, 1] = L[0, 1] - r * np.sin(th + b)
+            else:
+                self.particles[idx, :2] = prior[:2] + e.partial_position_sigma * (
+                    self.rng.standard_normal((k, 2))
+                )
+            self.particles[idx, 2] = _wrap(th)
         P = self.particles
         dx = L[None, :, 0] - P[:, 0:1]
         dy = L[None, :, 1] - P[:, 1:2]
@@ -358,8 +437,8 @@ class EnhancedAMCL(AMCL):
         brg_err = _wrap(np.arctan2(dy, dx) - P[:, 2:3] - det.bearings[di][None, :])
         ll = np.exp(
             -0.5 * ((rng_err / e.track_sigma_range) ** 2 + (brg_err / e.track_sigma_bearing) ** 2)
-        ).prod(axis=1)
-        p = self.measurement_weights(P, scan)
+        ).prod(axis=1)  # (N,), 1 without reflectors
+        p = self._laser_weights(scan, partial=True)
         self._apply_weights(p)
         w = self.weights * (ll + 1e-12)
         total = float(w.sum())
@@ -371,14 +450,18 @@ class EnhancedAMCL(AMCL):
         self._force_update = False
         self._estimate = None
         est = self._current(updated=True)
-        return PoseEstimate(est.pose, est.cov, est.n_particles, True, "enhanced-partial")
+        src = "enhanced-partial" if len(di) else "enhanced-laser"
+        return PoseEstimate(est.pose, est.cov, est.n_particles, True, src)
 
     def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
         fix = self.observer.observe(scan)
         self.last_fix = fix
-        if fix is None and self.ecfg.track_partial and len(self.observer.last_detections) > 0:
+        tracked = False
+        if fix is None and self.ecfg.track_partial and self.particles.shape[0] > 0:
             odom_arr = np.asarray(odom_pose, float).reshape(3)
-            fix = self._tracked_fix(odom_arr)
+            if len(self.observer.last_detections) > 0:
+                fix = self._tracked_fix(odom_arr)
+                tracked = fix is not None
             if fix is None:
                 est = self._partial_update(odom_arr, scan, force)
                 if est is not None:
@@ -408,13 +491,14 @@ class EnhancedAMCL(AMCL):
         cov = None
         if e.position_metric == "trilateration":
             cov = fix.trilateration.cov + np.diag(e.position_cov_floor)
-        if e.proposal_fraction > 0:  # mixture proposal: some predicted particles drawn at mu_G
-            k = round(e.proposal_fraction * len(self.particles))
+        frac = e.proposal_fraction * (e.track_inject_scale if tracked else 1.0)
+        if frac > 0:  # mixture proposal: some predicted particles drawn at mu_G
+            k = round(frac * len(self.particles))
             idx = self.rng.choice(len(self.particles), k, replace=False)
             Lc = np.linalg.cholesky(cov if cov is not None else np.eye(3))
             self.particles[idx] = self.rng.standard_normal((k, 3)) @ Lc.T + mu
             self.particles[idx, 2] = _wrap(self.particles[idx, 2])
-        p = self.measurement_weights(self.particles, scan)
+        p = self._laser_weights(scan, partial=tracked)
         omega = self.weights * p  # eq. 5
         omega = omega / max(float(omega.sum()), 1e-300)
         self._apply_weights(p)  # keeps w_slow / w_fast bookkeeping of AMCL
@@ -437,6 +521,8 @@ class EnhancedAMCL(AMCL):
         # eq. 8 on eq. 3 as printed (identity metric): particles within ~1.9 m / rad of mu_G
         d_new = position_weight(self.particles, mu, None)
         prob = np.where(d_new > e.injection_threshold, d_new, 0.0)
+        if tracked:
+            prob = prob * e.track_inject_scale
         inject = self.rng.uniform(size=len(prob)) <= prob
         k = int(inject.sum())
         if k:

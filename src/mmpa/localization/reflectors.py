@@ -53,6 +53,10 @@ class DetectionConfig(BaseModel):
     max_range_jump: float = Field(0.15, gt=0)  # m, between adjacent beams of one cluster
     min_beams: int = Field(1, ge=1)
     max_width: float = Field(0.3, gt=0)  # m, wider clusters are not reflectors (glare, walls)
+    # a cluster whose neighbouring beam returns this much closer than the reflector is cut by
+    # something in front of it (a person): its center is biased by up to ``radius``
+    occlusion_margin: float = Field(0.08, gt=0)  # m
+    occlusion_beams: int = Field(2, ge=1)  # beams checked on each side of a cluster
 
 
 @dataclass(frozen=True)
@@ -60,13 +64,36 @@ class ReflectorDetections:
     """Detected reflector centers in the SENSOR frame.
 
     ``ranges`` (n,) m and ``bearings`` (n,) rad from the sensor origin; ``points`` (n, 2) m;
-    ``beams`` (n,) number of returns per reflector (more beams, better center).
+    ``beams`` (n,) number of returns per reflector (more beams, better center); ``occluded``
+    (n,) bool: the cluster is cut by a closer return next to it (or by the edge of the scan),
+    so only part of the reflector was seen and its center is biased by up to the radius.
     """
 
     ranges: Array
     bearings: Array
     points: Array
     beams: np.ndarray
+    occluded: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.occluded is None:
+            object.__setattr__(self, "occluded", np.zeros(len(self.ranges), dtype=bool))
+
+    @property
+    def cut(self) -> np.ndarray:
+        """(n,) bool, ``occluded`` as a typed array."""
+        assert self.occluded is not None
+        return self.occluded
+
+    def select(self, keep: np.ndarray) -> ReflectorDetections:
+        """The detections where ``keep`` (bool or index array) holds."""
+        return ReflectorDetections(
+            self.ranges[keep],
+            self.bearings[keep],
+            self.points[keep],
+            self.beams[keep],
+            self.cut[keep],
+        )
 
     def __len__(self) -> int:
         return int(self.ranges.shape[0])
@@ -78,7 +105,7 @@ class ReflectorDetections:
         c, s = np.cos(th), np.sin(th)
         p = self.points @ np.array([[c, s], [-s, c]]) + np.array([x, y])
         return ReflectorDetections(
-            np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]), p, self.beams
+            np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]), p, self.beams, self.cut
         )
 
     @staticmethod
@@ -164,7 +191,8 @@ def detect_reflectors(scan: LaserScan, cfg: DetectionConfig | None = None) -> Re
         wrap_gap = first[0] + n - last[-1]
         if wrap_gap <= cfg.max_gap_beams and abs(r[first[0]] - r[last[-1]]) <= cfg.max_range_jump:
             clusters = [np.concatenate([last, first]), *clusters[1:-1]]
-    rng_out, brg, pts, beams = [], [], [], []
+    valid = scan.valid()
+    rng_out, brg, pts, beams, cut = [], [], [], [], []
     for cl in clusters:
         if cl.size < cfg.min_beams:
             continue
@@ -183,11 +211,37 @@ def detect_reflectors(scan: LaserScan, cfg: DetectionConfig | None = None) -> Re
         brg.append(float(np.arctan2(c[1], c[0])))
         pts.append(c)
         beams.append(cl.size)
+        cut.append(_occluded(cl, r, valid, n, full_circle, cfg))
     if not pts:
         return ReflectorDetections.empty()
     return ReflectorDetections(
-        np.array(rng_out), np.array(brg), np.array(pts), np.array(beams, dtype=int)
+        np.array(rng_out),
+        np.array(brg),
+        np.array(pts),
+        np.array(beams, dtype=int),
+        np.array(cut, dtype=bool),
     )
+
+
+def _occluded(
+    cl: np.ndarray, r: Array, valid: np.ndarray, n: int, full_circle: bool, cfg: DetectionConfig
+) -> bool:
+    """True if a valid return within ``occlusion_beams`` beams on either side of cluster ``cl``
+    is closer than the cluster's nearest hit by more than ``occlusion_margin`` (an object in
+    front cuts the reflector), or the cluster touches the edge of a partial scan."""
+    near = float(r[cl].min()) - cfg.occlusion_margin
+    for side in (
+        cl[0] - np.arange(1, cfg.occlusion_beams + 1),
+        cl[-1] + np.arange(1, cfg.occlusion_beams + 1),
+    ):
+        if full_circle:
+            side = side % n
+        elif side.min() < 0 or side.max() >= n:
+            return True
+        ok = valid[side]
+        if ok.any() and float(r[side][ok].min()) < near:
+            return True
+    return False
 
 
 # --- template library --------------------------------------------------------------------------
