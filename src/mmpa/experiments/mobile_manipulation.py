@@ -40,6 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.geometry import Array, se2_to_T, wrap_angle
+from mmpa.navigation.mission import NavigateConfig
 
 PAPER = "paper 001 (Zhou et al. 2020) §4.3.4, Table 4 (mobile manipulation, 20 runs per object)"
 
@@ -77,6 +78,8 @@ class Config(BaseModel):
     leg_points: int = Field(2, ge=1)
     face_tol: float = Field(0.3, gt=0)  # rad
     success_threshold: float = Field(0.012, gt=0)  # m (paper: 12 mm)
+    # the localization experiment's navigation settings
+    navigate: NavigateConfig = NavigateConfig(scan_rate=5.0, timeout=150.0)
     weights: str | None = None  # detector weights; None: shipped; "oracle": truth boxes
     preprocess_dark: bool = False
     use_predictor: bool = True
@@ -216,9 +219,9 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
             entry[2] = float(np.arctan2(d[1], d[0]))
         else:
             entry[2] = cfg.entry_heading
-        r1 = navigate(world, loc, grid, entry, costmap=costmap)
+        r1 = navigate(world, loc, grid, entry, cfg.navigate, costmap=costmap)
         found, t_search = search_desk(world, loc, cfg)
-        r2 = navigate(world, loc, grid, park, costmap=costmap)
+        r2 = navigate(world, loc, grid, park, cfg.navigate, costmap=costmap)
         e = r2.localization_error
         loc_err = float(np.hypot(e[0], e[1]))
         nav_ok = bool(r2.reached and loc_err < cfg.success_threshold)
