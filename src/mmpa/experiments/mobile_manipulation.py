@@ -19,7 +19,10 @@ One run (paper 001 §4.2.2, Fig. 15):
 5. **Approach and localize**: the final approach to the grasp pose in front of the desk,
    stopping, settling scans and re-checks with the reflectors (the high-precision localization
    of Fig. 15 d, e). *Navigation success* is the paper's criterion (§4.3.1): the final
-   position estimate within ``success_threshold`` (12 mm) of the truth.
+   position estimate within ``success_threshold`` (12 mm) of the truth, with the robot at the
+   desk (truth within ``arrive_tol`` of the grasp pose). The go-to-pose controller's own
+   ``reached`` flag (3 mm / 3 mrad) is recorded but not required: its final turn on the spot
+   often times out a few tenths of a radian off, which the grasp does not mind.
 6. **Detect and grasp**: the arm looks down at the desk (the ``grasp`` experiment's first
    view) and runs the tracking grasp (:class:`mmpa.servo.grasp.TrackingGrasp`, unchanged).
    *Detection success*: the target detected in that first frame (Table 3's definition).
@@ -78,6 +81,7 @@ class Config(BaseModel):
     leg_points: int = Field(2, ge=1)
     face_tol: float = Field(0.3, gt=0)  # rad
     success_threshold: float = Field(0.012, gt=0)  # m (paper: 12 mm)
+    arrive_tol: float = Field(0.05, gt=0)  # m, truth to the grasp pose
     # the localization experiment's navigation settings
     navigate: NavigateConfig = NavigateConfig(scan_rate=5.0, timeout=150.0)
     weights: str | None = None  # detector weights; None: shipped; "oracle": truth boxes
@@ -224,7 +228,7 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
         r2 = navigate(world, loc, grid, park, cfg.navigate, costmap=costmap)
         e = r2.localization_error
         loc_err = float(np.hypot(e[0], e[1]))
-        nav_ok = bool(r2.reached and loc_err < cfg.success_threshold)
+        nav_ok = bool(loc_err < cfg.success_threshold and r2.parking_error_xy < cfg.arrive_tol)
         # detection and grasp from the grasp experiment's first view
         _, top, _ = desk_frame(world)
         rb = world.nominal
