@@ -24,12 +24,24 @@ def dataset_cmd(
     out: Annotated[Path, typer.Option(help="output .npz")],
     n: Annotated[int, typer.Option(help="number of images")] = 2400,
     seed: Annotated[int, typer.Option(help="seed of the rendered scenes")] = 0,
+    work_view_prob: Annotated[
+        float, typer.Option(help="fraction of working views (the robot's pre-grasp view)")
+    ] = 0.0,
+    exact_lighting: Annotated[
+        bool, typer.Option(help="working views at the twin's exact dark/normal/high factors")
+    ] = False,
 ) -> None:
     """Render a labelled data set in the twin."""
     try:
         from mmpa.perception.dataset import DatasetConfig, render_dataset, save_dataset
 
-        ds = render_dataset(DatasetConfig(n_images=n, seed=seed), log=_log)
+        cfg = DatasetConfig(
+            n_images=n,
+            seed=seed,
+            work_view_prob=work_view_prob,
+            work_exact_lighting=exact_lighting,
+        )
+        ds = render_dataset(cfg, log=_log)
         save_dataset(ds, out)
     except MMPAError as e:
         fail(e)
@@ -39,34 +51,60 @@ def dataset_cmd(
 @perception_app.command("train")
 def train_cmd(
     out: Annotated[Path, typer.Option(help="weights file to write (.pt)")],
-    data: Annotated[Path | None, typer.Option(help="training .npz (default: render)")] = None,
+    data: Annotated[
+        list[Path] | None, typer.Option(help="training .npz, repeatable (default: render)")
+    ] = None,
     n: Annotated[int, typer.Option(help="images to render when no --data")] = 2400,
     seed: Annotated[int, typer.Option(help="data and training seed")] = 0,
     epochs: Annotated[int, typer.Option()] = 12,
+    lr: Annotated[float, typer.Option(help="peak learning rate")] = 2e-3,
     threads: Annotated[int, typer.Option(help="CPU threads for torch")] = 2,
     max_minutes: Annotated[float | None, typer.Option(help="stop after this time")] = None,
     dark_preprocess_prob: Annotated[float, typer.Option()] = 0.0,
+    crop_prob: Annotated[float, typer.Option(help="random crop-and-zoom probability")] = 0.0,
+    init: Annotated[
+        Path | None, typer.Option(help="fine-tune these weights (architecture from the file)")
+    ] = None,
+    val: Annotated[
+        Path | None,
+        typer.Option(help="validation .npz: choose the operating score threshold (max F1)"),
+    ] = None,
 ) -> None:
     """Train the SSD on rendered images (reproducible: seeded data and training)."""
     try:
         from mmpa.perception import require_torch
 
         require_torch()
-        from mmpa.perception.dataset import DatasetConfig, load_dataset, render_dataset
-        from mmpa.perception.train import TrainConfig, train
+        from mmpa.perception.dataset import Dataset, DatasetConfig, load_dataset, render_dataset
+        from mmpa.perception.ssd import Detector
+        from mmpa.perception.train import TrainConfig, choose_threshold, train
 
-        ds = load_dataset(data) if data else render_dataset(DatasetConfig(n_images=n, seed=seed))
+        ds = (
+            Dataset.concat([load_dataset(p) for p in data])
+            if data
+            else render_dataset(DatasetConfig(n_images=n, seed=seed))
+        )
         cfg = TrainConfig(
             epochs=epochs,
+            lr=lr,
             seed=seed,
             threads=threads,
             max_minutes=max_minutes,
             dark_preprocess_prob=dark_preprocess_prob,
+            crop_prob=crop_prob,
         )
+        model = Detector.load(init).model.train() if init else None
         out.parent.mkdir(parents=True, exist_ok=True)
-        det = train(ds, cfg, log=_log, on_epoch=lambda d: d.save(out))
-        det.meta["data"] = str(data) if data else f"rendered n={n} seed={seed}"
-        out.parent.mkdir(parents=True, exist_ok=True)
+        det = train(ds, cfg, model=model, log=_log, on_epoch=lambda d: d.save(out))
+        det.meta["data"] = [str(p) for p in data] if data else f"rendered n={n} seed={seed}"
+        det.meta["train_config"] = cfg.model_dump(mode="json")
+        if init:
+            det.meta["fine_tuned_from"] = str(init)
+        if val:
+            th, table = choose_threshold(det, load_dataset(val), threads=threads)
+            det.cfg.score_threshold = th
+            det.meta["threshold_choice"] = {"val": str(val), "recall_precision": table}
+            _log(f"operating threshold {th:.2f} (max F1 on {val})")
         det.save(out)
     except MMPAError as e:
         fail(e)
@@ -125,6 +163,9 @@ def evaluate_cmd(
     seed: Annotated[int, typer.Option(help="test-set seed (keep apart from training)")] = 1000,
     preprocess_dark: Annotated[bool, typer.Option(help="paper's dark preprocessing")] = False,
     json_out: Annotated[Path | None, typer.Option("--json", help="write results")] = None,
+    threshold: Annotated[
+        float | None, typer.Option(help="score threshold (default: the model's)")
+    ] = None,
 ) -> None:
     """Per-class AP@0.5 and detection success per lighting on a separately seeded set."""
     try:
@@ -141,7 +182,7 @@ def evaluate_cmd(
 
         det = Detector.load(weights)
         ds = load_dataset(data) if data else render_dataset(DatasetConfig(n_images=n, seed=seed))
-        res = evaluate(det, ds, preprocess_dark=preprocess_dark)
+        res = evaluate(det, ds, preprocess_dark=preprocess_dark, threshold=threshold)
     except MMPAError as e:
         fail(e)
     t = Table(title=f"detector on {len(ds)} images (mAP@0.5 {res.mean_ap:.3f})")
@@ -154,6 +195,21 @@ def evaluate_cmd(
         t.add_row(name, f"{ap:.3f}", *[f"{res.success[c][name]:.3f}" for c in conds])
     t.add_row("all", f"{res.mean_ap:.3f}", *[f"{res.success_all[c]:.3f}" for c in conds])
     console.print(t)
+    if res.work_success:
+        w = Table(title="working views: target detected (paper 001 Table 3's definition)")
+        w.add_column("class")
+        wc = list(res.work_success)
+        for c in wc:
+            w.add_column(c)
+        for name in res.ap:
+            w.add_row(
+                name,
+                *[f"{res.work_success[c][name]:.3f} ({res.work_counts[c][name]})" for c in wc],
+            )
+        w.add_row("all", *[f"{res.work_success_all[c]:.3f}" for c in wc])
+        console.print(w)
+        _log(f"targets hidden or out of view (counted as misses): {res.work_hidden}")
+    _log(f"score threshold {res.threshold:.2f}")
     _log(f"precision at the operating point: {res.precision}; {res.ms_per_image:.1f} ms/image")
     if json_out:
         json_out.write_text(json.dumps(asdict(res), indent=2))

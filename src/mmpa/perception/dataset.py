@@ -1,10 +1,23 @@
 """Training and test data rendered by the digital twin, labelled by segmentation rendering.
 
 Each sample: the seven objects of paper 001 Fig. 11 (a random subset) and distractors at random
-poses on the grasp desk, one of the three light conditions (with jitter), a random wrist-camera
+poses on the grasp desk, one of the three light conditions (with jitter), a wrist-camera
 viewpoint reached by the nominal IK, a 320x240 RGB image with the camera's noise model, and
 boxes from MuJoCo's segmentation rendering (the body id at each pixel; a box is the extent of
 an object's visible pixels; objects with fewer than ``min_pixels`` visible are not labelled).
+
+Two kinds of viewpoint:
+
+- *random views* (the default): any view of the desk from the robot's side, 0.32-0.65 m away,
+  50-90 deg elevation, camera roll +-20 deg; objects are often cut by the image border;
+- *working views* (``work_view_prob``): the view the robot takes before a grasp (paper 001
+  Table 3 counts a detection success when the target is detected there): the base parked at
+  the desk, the camera ``LOOK_HEIGHT`` above the desk looking straight down at ``LOOK_TARGET``
+  (the ``grasp`` experiment's first view, :func:`mmpa.servo.grasp.look_configuration`), one
+  *target* object in the reachable region and the others anywhere on the desk. These images
+  go through the robot's own camera (640x480, the reference noise model) and the detector's
+  downsampling (:func:`mmpa.perception.ssd.to_input`), exactly as the robot sees them; the
+  target's class is stored per image (``Dataset.target``, -1 for random views).
 
 This module drives the simulator (it is a data generator, like an operator), so it imports
 ``mmpa.sim`` lazily; the detector itself never does.
@@ -62,6 +75,10 @@ class DatasetConfig(BaseModel):
     view_elevation_deg: tuple[float, float] = (50.0, 90.0)
     base_jitter: tuple[float, float, float] = (0.15, 0.06, 0.2)  # m, m, rad around DESK_PARK
     min_pixels: int = Field(25, ge=1)
+    work_view_prob: float = Field(0.0, ge=0, le=1)  # fraction of working views (module doc)
+    work_exact_lighting: bool = False  # working views at the twin's exact condition factors
+    work_base_jitter: tuple[float, float, float] = (0.05, 0.03, 0.05)  # the grasp experiment's
+    work_look_jitter: float = Field(0.03, ge=0)  # m, look target jitter in x and y
 
 
 @dataclass
@@ -74,21 +91,41 @@ class Sample:
 
 @dataclass
 class Dataset:
+    """``target``: (N,) class index of the working view's target object, -1 for random views
+    (and for data sets saved before working views existed)."""
+
     images: np.ndarray  # (N, H, W, 3) uint8
     boxes: list[np.ndarray]
     labels: list[np.ndarray]
     lighting: np.ndarray  # (N,) int
+    target: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.target is None:
+            self.target = np.full(len(self.images), -1, int)
 
     def __len__(self) -> int:
         return len(self.images)
 
     def subset(self, idx: Array) -> Dataset:
         idx = np.asarray(idx, int)
+        assert self.target is not None
         return Dataset(
             self.images[idx],
             [self.boxes[i] for i in idx],
             [self.labels[i] for i in idx],
             self.lighting[idx],
+            self.target[idx],
+        )
+
+    @staticmethod
+    def concat(parts: list[Dataset]) -> Dataset:
+        return Dataset(
+            np.concatenate([p.images for p in parts]),
+            [b for p in parts for b in p.boxes],
+            [lab for p in parts for lab in p.labels],
+            np.concatenate([p.lighting for p in parts]),
+            np.concatenate([np.asarray(p.target) for p in parts]),
         )
 
 
@@ -101,6 +138,7 @@ def save_dataset(ds: Dataset, path: str | Path) -> None:
         labels=np.concatenate([*ds.labels, np.zeros(0, np.int64)]),
         counts=n,
         lighting=ds.lighting,
+        target=ds.target,
     )
 
 
@@ -115,6 +153,7 @@ def load_dataset(path: str | Path) -> Dataset:
             [boxes[off[i] : off[i + 1]] for i in range(len(counts))],
             [labels[off[i] : off[i + 1]] for i in range(len(counts))],
             z["lighting"],
+            z["target"] if "target" in z.files else None,
         )
     except (OSError, KeyError, ValueError) as e:
         raise ConfigError(f"cannot read data set {path}: {e}") from None
@@ -277,37 +316,52 @@ def render_dataset(cfg: DatasetConfig, log: object = None, progress: object = No
     conds = list(cfg.lighting)
     pc = np.array([cfg.lighting[c] for c in conds], float)
     pc /= pc.sum()
-    images, boxes, labels, light = [], [], [], []
+    images, boxes, labels, light, targets = [], [], [], [], []
     try:
         i = 0
+        was_work = False
         while i < cfg.n_images:
-            if i % 50 == 0:
+            # (no draw without working views: random-view data sets keep their old streams)
+            work = cfg.work_view_prob > 0 and bool(rng.random() < cfg.work_view_prob)
+            if i % 50 == 0 or work or was_work:  # random views share a base pose per 50
                 x, y, th = DESK_PARK
-                j = cfg.base_jitter
-                pose = np.array([x, y, th]) + rng.uniform(-1, 1, 3) * np.array(j)
+                j = np.array(cfg.work_base_jitter if work else cfg.base_jitter)
+                pose = np.array([x, y, th]) + rng.uniform(-1, 1, 3) * j
                 world.reset(pose2d=pose, settle=0.0)
+            was_work = work
             n_obj = int(rng.integers(cfg.objects_min, cfg.objects_max + 1))
             objs = list(rng.choice(CLASSES, n_obj, replace=False))
             dis = [d for d in distractors if rng.random() < cfg.distractor_prob]
             for g in dgeoms:
                 world.model.geom_rgba[g, :3] = rng.uniform(0.05, 0.95, 3)
-            placed = random_table_scene(world, rng, objs, dis)
-            if not placed:
-                continue
-            target = placed[str(rng.choice(list(placed)))] + rng.normal(0, 0.05, 3) * [1, 1, 0]
-            q = sample_view(world, rng, cfg, target)
-            if q is None:
-                continue
-            world.set_arm_configuration(q)
-            cond = conds[int(rng.choice(len(conds), p=pc))]
-            world.set_lighting(float(rng.uniform(*LIGHT_RANGES[cond])))
-            color, _ = cam._render()
-            seg = cam.segmentation()
-            b, lab = boxes_from_segmentation(seg, body_ids, cfg.min_pixels)
-            noisy = noise.model_copy(update={"color_sigma": NOISE_SIGMA[cond]})
-            images.append(color_noise(color, rng, noisy))
-            boxes.append(b)
-            labels.append(lab)
+            if work:
+                cond = conds[int(rng.choice(len(conds), p=pc))]
+                s = _work_view_sample(world, rng, cfg, cond, objs, dis, body_ids)
+                if s is None:
+                    continue
+                images.append(s.image)
+                boxes.append(s.boxes)
+                labels.append(s.labels)
+                targets.append(CLASSES.index(objs[0]))
+            else:
+                placed = random_table_scene(world, rng, objs, dis)
+                if not placed:
+                    continue
+                target = placed[str(rng.choice(list(placed)))] + rng.normal(0, 0.05, 3) * [1, 1, 0]
+                q = sample_view(world, rng, cfg, target)
+                if q is None:
+                    continue
+                world.set_arm_configuration(q)
+                cond = conds[int(rng.choice(len(conds), p=pc))]
+                world.set_lighting(float(rng.uniform(*LIGHT_RANGES[cond])))
+                color, _ = cam._render()
+                seg = cam.segmentation()
+                b, lab = boxes_from_segmentation(seg, body_ids, cfg.min_pixels)
+                noisy = noise.model_copy(update={"color_sigma": NOISE_SIGMA[cond]})
+                images.append(color_noise(color, rng, noisy))
+                boxes.append(b)
+                labels.append(lab)
+                targets.append(-1)
             light.append(LIGHTING_CONDITIONS.index(cond))
             i += 1
             if progress is not None:
@@ -317,7 +371,68 @@ def render_dataset(cfg: DatasetConfig, log: object = None, progress: object = No
     finally:
         cam.close()
         world.close()
-    return Dataset(np.stack(images), boxes, labels, np.array(light, int))
+    return Dataset(np.stack(images), boxes, labels, np.array(light, int), np.array(targets, int))
+
+
+def _work_view_sample(
+    world: SimWorld,
+    rng: np.random.Generator,
+    cfg: DatasetConfig,
+    cond: str,
+    objs: list[str],
+    dis: list[str],
+    body_ids: dict[int, int],
+) -> Sample | None:
+    """One working view (module doc): ``objs[0]`` is the target, placed in the grasp
+    experiment's reachable region; the image is the robot camera's frame downsampled to
+    ``cfg.width`` x ``cfg.height``, boxes from the full-resolution segmentation."""
+    from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, REGION
+    from mmpa.perception.ssd import to_input
+    from mmpa.servo.grasp import look_configuration
+
+    placed = random_table_scene(world, rng, objs[1:], dis)
+    _place_in_region(world, rng, objs[0], placed, REGION)
+    _, top, _ = desk_frame(world)
+    rb = world.nominal
+    look = np.array([*(np.array(LOOK_TARGET) + rng.uniform(-1, 1, 2) * cfg.work_look_jitter), 0.0])
+    look[2] = top - rb.T_base_link_arm_base[2, 3]
+    try:
+        q = look_configuration(rb, look, LOOK_HEIGHT)
+    except Exception:
+        return None
+    world.set_arm_configuration(q)
+    if cfg.work_exact_lighting:
+        world.set_lighting(cond)
+    else:
+        world.set_lighting(float(rng.uniform(*LIGHT_RANGES[cond])))
+    full = world.camera.capture().color
+    img, sx, sy = to_input(full, cfg.width, cfg.height)
+    seg = world.camera.segmentation()
+    b, lab = boxes_from_segmentation(seg, body_ids, round(cfg.min_pixels * sx * sy))
+    b = b / np.array([sx, sy, sx, sy], np.float32)
+    return Sample(img, b.astype(np.float32), lab, LIGHTING_CONDITIONS.index(cond))
+
+
+def _place_in_region(
+    world: SimWorld,
+    rng: np.random.Generator,
+    name: str,
+    placed: dict[str, Array],
+    region: tuple[float, float, float, float],
+) -> None:
+    """Put ``name`` in the desk-top ``region`` at least its footprint + 0.1 m away from the
+    already placed objects (300 tries, else the last draw), at a random yaw."""
+    T_desk, _, _ = desk_frame(world)
+    r, h = _footprint(world, name)
+    local = [(inv(T_desk) @ np.append(p, 1.0))[:2] for p in placed.values()]
+    x0, x1, y0, y1 = region
+    xy = np.zeros(2)
+    for _ in range(300):
+        xy = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
+        if all(np.linalg.norm(xy - q) > r + 0.1 for q in local):
+            break
+    p = T_desk[:3, :3] @ np.array([*xy, h + 0.001]) + T_desk[:3, 3]
+    world.place_object(name, p, yaw=float(rng.uniform(-np.pi, np.pi)))
 
 
 def base_pose_T(pose2d: Array) -> Array:

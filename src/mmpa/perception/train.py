@@ -1,11 +1,16 @@
 """Training and evaluation of the detector on rendered data (``mmpa perception train``).
 
-Training: Adam with cosine learning-rate decay, mini-batches of rendered images with
-augmentation (horizontal flip; brightness, contrast and per-channel gain jitter), the SSD
-multibox loss. Evaluation on a separately seeded set: per-class average precision at IoU 0.5
-(VOC all-point interpolation) and detection success (a labelled object counts as detected when
-a detection of its class with IoU >= 0.5 scores above the operating threshold) per lighting
-condition. Torch runs with ``threads`` CPU threads; progress goes to a log callback.
+Training: Adam with a one-cycle learning-rate schedule, mini-batches of rendered images with
+augmentation (random crop-and-zoom, horizontal flip; brightness, contrast and per-channel gain
+jitter), the SSD multibox loss; optionally fine-tuning a trained model.
+
+Evaluation on a separately seeded set: per-class average precision at IoU 0.5 (VOC all-point
+interpolation); detection success per lighting condition (a labelled object counts as detected
+when a detection of its class with IoU >= 0.5 scores above the operating threshold), over every
+labelled object of every image (random views: many objects cut by the image border) and, on
+working views, over the target object (paper 001 Table 3's definition: the target detected in
+the robot's working view). The operating threshold is chosen on a validation set
+(:func:`choose_threshold`). Torch runs with ``threads`` CPU threads.
 """
 
 from __future__ import annotations
@@ -31,7 +36,17 @@ from mmpa.perception.ssd import (
     multibox_loss,
 )
 
-__all__ = ["EvalResult", "TrainConfig", "average_precision", "evaluate", "train"]
+__all__ = [
+    "EvalResult",
+    "TrainConfig",
+    "average_precision",
+    "choose_threshold",
+    "crop_zoom",
+    "detect_all",
+    "evaluate",
+    "recall_precision",
+    "train",
+]
 
 
 class TrainConfig(BaseModel):
@@ -44,6 +59,31 @@ class TrainConfig(BaseModel):
     threads: int = Field(2, ge=1)
     max_minutes: float | None = None  # stop early (at an epoch's end) past this time
     dark_preprocess_prob: float = Field(0.0, ge=0, le=1)  # train on preprocessed dark images
+    crop_prob: float = Field(0.0, ge=0, le=1)  # random crop-and-zoom (see :func:`augment`)
+
+
+def crop_zoom(
+    img: np.ndarray, boxes: np.ndarray, labels: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Random crop of ``s`` = U(0.6, 1) of each image side, resized back (nearest) to the
+    image size: objects look up to 1/0.6 = 1.7x larger and more of them are cut by the border.
+    Boxes (K, 4) are shifted, scaled and clipped to the image (a label is the VISIBLE extent);
+    boxes keeping less than a quarter of their area or under 2 px a side are dropped."""
+    h, w = img.shape[:2]
+    s = rng.uniform(0.6, 1.0)
+    cw, ch = round(s * w), round(s * h)
+    x0, y0 = int(rng.integers(0, w - cw + 1)), int(rng.integers(0, h - ch + 1))
+    rows = y0 + np.minimum((np.arange(h) + 0.5) * ch / h, ch - 1).astype(int)
+    cols = x0 + np.minimum((np.arange(w) + 0.5) * cw / w, cw - 1).astype(int)
+    out = img[rows][:, cols]
+    b = (boxes - np.array([x0, y0, x0, y0], np.float32)) * np.array(
+        [w / cw, h / ch, w / cw, h / ch], np.float32
+    )
+    area0 = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
+    b = np.clip(b, 0, [w, h, w, h]).astype(np.float32)
+    wh = b[:, 2:] - b[:, :2]
+    keep = (wh.min(1) >= 2) & (wh.prod(1) >= 0.25 * np.maximum(area0, 1e-9))
+    return out, b[keep], labels[keep]
 
 
 def augment(
@@ -105,17 +145,18 @@ def train(
         nb = 0
         for s in range(0, n - cfg.batch_size + 1, cfg.batch_size):
             idx = perm[s : s + cfg.batch_size]
-            imgs, bxs = [], []
+            imgs, bxs, lbs = [], [], []
             for i in idx:
-                im = data.images[i]
+                im, b, lab = data.images[i], data.boxes[i], data.labels[i]
                 if data.lighting[i] == 0 and rng.random() < cfg.dark_preprocess_prob:
                     im = dark_preprocess(im)
-                im, b = augment(im, data.boxes[i], rng)
+                if cfg.crop_prob > 0 and rng.random() < cfg.crop_prob:
+                    im, b, lab = crop_zoom(im, b, lab, rng)
+                im, b = augment(im, b, rng)
                 imgs.append(im)
                 bxs.append(b)
-            loc_t, lab_t = _targets(
-                bxs, [data.labels[i] for i in idx], model.priors, mc.width, mc.height
-            )
+                lbs.append(lab)
+            loc_t, lab_t = _targets(bxs, lbs, model.priors, mc.width, mc.height)
             loc, conf = model(image_tensor(np.stack(imgs)))
             l_loc, l_conf = multibox_loss(loc, conf, loc_t, lab_t)
             loss = l_loc + l_conf
@@ -193,6 +234,14 @@ class EvalResult:
     precision: dict[str, float]
     ms_per_image: float
     counts: dict[str, dict[str, int]] = field(default_factory=dict)
+    threshold: float = float("nan")
+    # working views (Dataset.target >= 0): the target detected (its class, IoU >= 0.5, score
+    # >= threshold) per lighting and class, over all working views (a target hidden behind
+    # another object or out of the view counts as a miss; ``work_hidden`` counts those)
+    work_success: dict[str, dict[str, float]] = field(default_factory=dict)
+    work_success_all: dict[str, float] = field(default_factory=dict)
+    work_counts: dict[str, dict[str, int]] = field(default_factory=dict)
+    work_hidden: int = 0
 
 
 def _tp_flags(dets: list[Detection], gt_b: np.ndarray, gt_l: np.ndarray, c: int) -> list[int]:
@@ -212,17 +261,11 @@ def _tp_flags(dets: list[Detection], gt_b: np.ndarray, gt_l: np.ndarray, c: int)
     return flags
 
 
-def evaluate(
-    det: Detector,
-    data: Dataset,
-    preprocess_dark: bool = False,
-    batch: int = 16,
-    threads: int = 2,
-) -> EvalResult:
-    """Per-class AP and detection success per lighting on ``data``."""
-    torch.set_num_threads(threads)
-    classes = det.cfg.classes
-    low: list[list[Detection]] = []
+def detect_all(
+    det: Detector, data: Dataset, preprocess_dark: bool = False, batch: int = 16, low: float = 0.02
+) -> tuple[list[list[Detection]], float]:
+    """Detections (score >= ``low``) on every image of ``data`` and the ms per image."""
+    out: list[list[Detection]] = []
     t0 = time.perf_counter()
     for s in range(0, len(data), batch):
         imgs = data.images[s : s + batch]
@@ -233,9 +276,54 @@ def evaluate(
                     for k, im in enumerate(imgs)
                 ]
             )
-        low += det.detect_batch(imgs, score_threshold=0.02)
-    ms = 1000 * (time.perf_counter() - t0) / max(len(data), 1)
-    th = det.cfg.score_threshold
+        out += det.detect_batch(imgs, score_threshold=low)
+    return out, 1000 * (time.perf_counter() - t0) / max(len(data), 1)
+
+
+def recall_precision(
+    low: list[list[Detection]], data: Dataset, threshold: float, n_classes: int
+) -> tuple[float, float]:
+    """Object-level recall (labelled objects detected, class and IoU >= 0.5) and precision
+    (detections matching a labelled object) at ``threshold``."""
+    hit = n_det = n_gt = 0
+    for dets, b, lab in zip(low, data.boxes, data.labels, strict=True):
+        d = [x for x in dets if x.score >= threshold]
+        for c in range(n_classes):
+            f = _tp_flags(d, b, lab, c)
+            hit += sum(f)
+            n_det += len(f)
+        n_gt += len(lab)
+    return hit / max(n_gt, 1), hit / max(n_det, 1)
+
+
+def choose_threshold(
+    det: Detector, val: Dataset, grid: np.ndarray | None = None, threads: int = 2
+) -> tuple[float, list[tuple[float, float, float]]]:
+    """The operating score threshold: the one of ``grid`` (default 0.10, 0.15, ..., 0.80)
+    that maximizes the object-level F1 = 2 R P / (R + P) on a VALIDATION set (never the test
+    set). Returns it and ``(threshold, recall, precision)`` per grid value."""
+    torch.set_num_threads(threads)
+    grid = np.round(np.arange(0.10, 0.801, 0.05), 2) if grid is None else np.asarray(grid)
+    low, _ = detect_all(det, val)
+    table = [(float(t), *recall_precision(low, val, float(t), len(det.cfg.classes))) for t in grid]
+    f1 = [2 * r * p / max(r + p, 1e-12) for _, r, p in table]
+    return table[int(np.argmax(f1))][0], table
+
+
+def evaluate(
+    det: Detector,
+    data: Dataset,
+    preprocess_dark: bool = False,
+    batch: int = 16,
+    threads: int = 2,
+    threshold: float | None = None,
+) -> EvalResult:
+    """Per-class AP and detection success per lighting on ``data`` at ``threshold``
+    (default: the detector's operating threshold)."""
+    torch.set_num_threads(threads)
+    classes = det.cfg.classes
+    low, ms = detect_all(det, data, preprocess_dark, batch)
+    th = det.cfg.score_threshold if threshold is None else threshold
     ap = {}
     for c, name in enumerate(classes):
         tps, scs, n_gt = [], [], 0
@@ -270,7 +358,7 @@ def evaluate(
         success_all[cond] = float(hit.sum() / max(tot.sum(), 1))
         precision[cond] = float(n_tp / max(n_det, 1))
     vals = [v for v in ap.values() if np.isfinite(v)]
-    return EvalResult(
+    res = EvalResult(
         ap=ap,
         mean_ap=float(np.mean(vals)) if vals else float("nan"),
         success=success,
@@ -278,7 +366,39 @@ def evaluate(
         precision=precision,
         ms_per_image=ms,
         counts=counts,
+        threshold=th,
     )
+    _work_view_success(res, low, data, th, classes)
+    return res
+
+
+def _work_view_success(
+    res: EvalResult, low: list[list[Detection]], data: Dataset, th: float, classes: tuple
+) -> None:
+    """Fill ``res.work_*``: target detection success over the working views."""
+    tgt = np.asarray(data.target)
+    for li, cond in enumerate(LIGHTING_CONDITIONS):
+        sel = np.nonzero((data.lighting == li) & (tgt >= 0))[0]
+        if sel.size == 0:
+            continue
+        hit = np.zeros(len(classes))
+        tot = np.zeros(len(classes))
+        for i in sel:
+            c = int(tgt[i])
+            tot[c] += 1
+            g = data.boxes[i][data.labels[i] == c]
+            if len(g) == 0:
+                res.work_hidden += 1
+                continue
+            d = [x for x in low[i] if x.score >= th and x.label == c]
+            if d and _iou_np(np.array([x.box for x in d]), g).max() >= 0.5:
+                hit[c] += 1
+        res.work_success[cond] = {
+            classes[c]: float(hit[c] / tot[c]) if tot[c] else float("nan")
+            for c in range(len(classes))
+        }
+        res.work_counts[cond] = {classes[c]: int(tot[c]) for c in range(len(classes))}
+        res.work_success_all[cond] = float(hit.sum() / max(tot.sum(), 1))
 
 
 __all__ += ["CLASSES"]
