@@ -353,7 +353,8 @@ def run(cfg: Config, ctx: Context, progress: Callable[[str, float], None] | None
         + markdown_table(header, table, digits=2)
         + "\nFailures:\n"
         + "".join(
-            f"- {r['object']} / {r['lighting']} trial {r['trial']}: {r['reason']}\n"
+            f"- {r['object']} / {r['lighting']} trial {r['trial']}: {r['failure']} "
+            f"(close offset x {1000 * r['close_dx']:.0f} mm, y {1000 * r['close_dy']:.0f} mm)\n"
             for r in rows
             if not r["grasped"]
         )

@@ -60,10 +60,12 @@ class GraspConfig(BaseModel):
     steady_tol: float = Field(0.004, gt=0)  # m
     steady_ticks: int = Field(3, ge=0)
     final_standoff: float = Field(0.16, gt=0)  # m: last tracking height before the descent
-    descend_speed: float = Field(0.8, gt=0)  # m/s of the blind descent
+    descend_speed: float = Field(1.2, gt=0)  # m/s of the blind descent
     descend_rate_hz: float = Field(50.0, gt=0)  # set-points of the descent
     arm_lag: float = Field(0.03, ge=0)  # s, set-point to TCP (latency compensation)
-    close_delay: float = Field(0.03, ge=0)  # s from the last descent set-point to closing
+    close_delay: float = Field(0.0, ge=0)  # s from the arrival to closing
+    settle_tol: float = Field(0.006, gt=0)  # m: the TCP this near the grasp height = arrived
+    settle_max: float = Field(0.3, ge=0)  # s waited at most for the arrival
     coast_time: float = Field(1.0, ge=0)  # s of following the prediction without detections
     max_time: float = Field(25.0, gt=0)  # s
     lift: float = Field(0.12, gt=0)  # m
@@ -433,13 +435,18 @@ class TrackingGrasp:
         zg = grasp_height(top_z, desk_z, cfg.pad_clearance, cfg.palm_clearance)
         n = max(int(np.ceil(abs(z0 - zg) / cfg.descend_speed / dt)), 1)
         q_min, q_max = self.robot.arm.q_limits
-        for k in range(1, n + 1):
+        n_settle = int(np.ceil(cfg.settle_max / dt))
+        for k in range(1, n + 1 + n_settle):
+            if k > n:  # arrived? (encoders, nominal kinematics): close as soon as it is there
+                z_meas = fk(dh, np.asarray(arm.joint_positions(), float), self._T_ft)[2, 3]
+                if abs(z_meas - zg) < cfg.settle_tol:
+                    break
             if cfg.use_predictor and kf.initialized:
                 p = kf.position(ahead=dt + cfg.arm_lag)
             else:
                 p = p_meas
             assert p is not None
-            target = np.array([p[0], p[1], z0 + (k / n) * (zg - z0)])
+            target = np.array([p[0], p[1], z0 + min(k / n, 1.0) * (zg - z0)])
             T = make_T(R, target) @ inv(self._T_ft)
             q = ik_nearest(dh, T, q_cmd, q_min, q_max)
             if np.max(np.abs(q - q_cmd)) > 0.5:

@@ -19,7 +19,7 @@ __all__ = ["ConstantVelocityKF", "PredictorConfig"]
 
 class PredictorConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    accel_sigma: float = Field(0.3, gt=0)  # m/s^2 / sqrt(Hz)
+    accel_sigma: float = Field(1.0, gt=0)  # m/s^2 / sqrt(Hz)
     meas_sigma: float = Field(0.005, gt=0)  # m
     init_speed_sigma: float = Field(0.3, gt=0)  # m/s
     gate: float = Field(0.15, gt=0)  # m: a measurement this far from the prediction resets
