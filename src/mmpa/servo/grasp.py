@@ -78,7 +78,7 @@ class GraspConfig(BaseModel):
     # improvement: "top" = the top center and top height from all the box's depth pixels
     # (servo.target); "box" = the paper's box center deprojected at its depth
     grasp_point: Literal["top", "box"] = "top"
-    palm_clearance: float = Field(0.065, gt=0)  # m, TCP at least this far below the top
+    palm_clearance: float = Field(0.065, gt=0)  # m, TCP at most this far below the top
     center_correction: bool = True  # "box" only: object center behind the surface point
     axis_from_depth: bool = True  # "box" only: principal axis of the depth foreground
     joint_margin: float = Field(0.05, ge=0)  # rad kept from the joint limits
@@ -96,6 +96,7 @@ class GraspResult:
     ticks: int
     lost_ticks: int
     detect_ms: list[float] = field(default_factory=list)
+    capture_ms: list[float] = field(default_factory=list)
     loop_s: list[float] = field(default_factory=list)
 
 
@@ -317,8 +318,10 @@ class TrackingGrasp:
             w0 = time.perf_counter()
             ticks += 1
             q_meas = np.asarray(arm.joint_positions(), float)
+            c0 = time.perf_counter()
             frame = camera.capture()
             d0 = time.perf_counter()
+            res.capture_ms.append(1000 * (d0 - c0))
             _, meas = self._measure(frame, name, q_meas, kf)
             res.detect_ms.append(1000 * (time.perf_counter() - d0))
             if first is None:

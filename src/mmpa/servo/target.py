@@ -21,10 +21,10 @@ deprojected to ``arm_base`` (nominal kinematics)::
 The grasp height of the tool center point (TCP, between the fingertips) for a top-down grasp
 with fingers reaching ``pad_below`` under the TCP and a palm ``palm_above`` over it::
 
-    z_grasp = clip((z_top + z_desk) / 2,  z_desk + pad_clearance,  z_top - palm_clearance)
+    z_grasp = max((z_top + z_desk) / 2,  z_top - palm_clearance,  z_desk + pad_clearance)
 
-(the lower bound wins when both conflict: short objects): mid-height, but the fingertips stay
-off the desk and the palm stays over the object's top, whatever its height.
+mid-height, but never so low that the palm (``palm_clearance`` > ``palm_above``) meets the top
+of a tall object, nor the fingertips the desk.
 """
 
 from __future__ import annotations
@@ -160,10 +160,10 @@ def grasp_height(
     pad_clearance: float = 0.024,
     palm_clearance: float = 0.065,
 ) -> float:
-    """TCP height (m) of a top-down grasp: mid-height of the object, at most
-    ``palm_clearance`` below its top (the palm stays over it) and at least ``pad_clearance``
-    above the desk (fingertips off the desk), the latter winning for short objects."""
+    """TCP height (m) of a top-down grasp: mid-height of the object, but at most
+    ``palm_clearance`` below its top (the palm stays over a tall object) and at least
+    ``pad_clearance`` above the desk (fingertips off the desk)."""
     if not (np.isfinite(z_top) and np.isfinite(z_desk)) or z_top < z_desk:
         raise InvalidInputError(f"object top {z_top} must be finite and above the desk {z_desk}")
     mid = 0.5 * (z_top + z_desk)
-    return float(max(z_desk + pad_clearance, min(mid, z_top - palm_clearance)))
+    return float(max(mid, z_top - palm_clearance, z_desk + pad_clearance))
