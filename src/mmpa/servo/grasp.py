@@ -3,15 +3,19 @@
 :class:`TrackingGrasp` runs over the robot interfaces (an arm that accepts streaming set-points
 ``command(q)``, a gripper, an RGB-D camera, a base) and a ``wait(dt)`` clock (the twin steps
 its physics; a real robot sleeps). Each tick (``rate_hz``): capture, detect the named object,
-locate its center in ``arm_base`` (nominal kinematics), update the constant-velocity Kalman
-filter, and run IBVS (eq. 10-12) toward the tracking point ``standoff`` above the object with
-the object's estimated velocity as feed-forward, plus the null-space manipulability term
-(eq. 13-14). When the error stays small the gripper descends along a straight line to the
-(predicted) grasp point, closes and lifts. When the object leaves the view the arm holds
-still and waits for it to reappear (the paper's behaviour); with the predictor it first keeps
-following the prediction for ``coast_time``. The base creeps forward when the object lies
-beyond ``reach_limit``. Every set-point is checked against the joint limits and the joint
-speed limits before it is sent.
+locate it in ``arm_base`` (nominal kinematics; by default its top center and top height from
+all the box's depth pixels, :mod:`mmpa.servo.target`; the paper's box center with
+``grasp_point="box"``), update the constant-velocity Kalman filter, and run IBVS (eq. 10-12)
+toward the tracking point ``standoff`` above the object with the object's estimated velocity
+as feed-forward, plus the null-space manipulability term (eq. 13-14). When the error stays
+small (and, with the predictor, the object has moved predictably for ``steady_ticks``) the TCP
+descends blind at ``descend_speed`` to the grasp height (:func:`mmpa.servo.target.
+grasp_height`), following the object's predicted position ``arm_lag`` ahead of each
+set-point; it closes as soon as the encoders say the TCP arrived, then lifts. When the object
+leaves the view the arm holds still and waits for it to reappear (the paper's behaviour); with
+the predictor it first keeps following the prediction for ``coast_time``. The base creeps
+forward when the object lies beyond ``reach_limit``. Every set-point is clipped to the joint
+limits and scaled to the joint speed limits before it is sent.
 """
 
 from __future__ import annotations
