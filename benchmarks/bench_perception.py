@@ -66,9 +66,11 @@ def bench_servo() -> None:
         row = grasp_trial(w, g, "tennis_ball", "normal", np.random.default_rng(0))
     loop = row["loop_ms"]
     own = row["detect_ms"]
+    cap = row["capture_ms"]
     print(
-        f"servo loop in the twin: {loop:.0f} ms/tick wall ({1000 / loop:.1f} Hz) incl. render and "
-        f"physics; detection + location per tick {own:.0f} ms ({1000 / own:.0f} Hz); grasped "
+        f"servo loop in the twin: {loop:.0f} ms/tick wall ({1000 / loop:.1f} Hz): RGB-D capture "
+        f"(render + noise, the twin) {cap:.0f} ms, detection + location {own:.0f} ms, control + "
+        f"physics {loop - cap - own:.0f} ms; mmpa's own part {1000 / own:.0f} Hz; grasped "
         f"{row['grasped']} in {row['time_to_grasp']:.1f} s sim -> "
         f"{'OK' if 1000 / loop >= TARGET_HZ else 'BELOW'} target {TARGET_HZ} Hz"
     )

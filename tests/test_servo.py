@@ -109,3 +109,37 @@ def test_kalman_filter_tracks_constant_velocity():
     assert kf.position(ahead=0.5) == pytest.approx(p0 + v * (t + 0.5), abs=0.04)
     with pytest.raises(InvalidInputError):
         kf.update(np.array([np.nan, 0, 0]))
+
+
+def test_top_surface_and_grasp_height_on_a_synthetic_depth_image():
+    """An upright cylinder straight under a down-looking camera: the depth image is computed
+    by ray casting (top disk at ``h``, desk at 0), the top center and heights come back."""
+    from mmpa.geometry import make_T
+    from mmpa.servo.target import desk_height, grasp_height, top_surface
+
+    H, r, h, c = 0.45, 0.031, 0.20, np.array([0.012, -0.02])
+    K = np.array([[615.0, 0, 319.5], [0, 615.0, 239.5], [0, 0, 1]])
+    # optical z down (-z of arm_base), x along +x, y along -y; camera at (0, 0, H)
+    T = make_T(np.diag([1.0, -1.0, -1.0]), [0.0, 0.0, H])
+    vv, uu = np.mgrid[0:480, 0:640]
+    rx, ry = (uu - 319.5) / 615.0, (vv - 239.5) / 615.0  # ray per unit optical depth
+    d_top = H - h  # optical depth of the top plane
+    on_top = np.hypot(rx * d_top - c[0], -ry * d_top - c[1]) <= r
+    depth = np.where(on_top, d_top, H).astype(np.float32)
+    cu, cv = 319.5 + 615 * c[0] / d_top, 239.5 - 615 * c[1] / d_top
+    rp = 615 * r / d_top
+    box = np.array([cu - rp - 3, cv - rp - 3, cu + rp + 3, cv + rp + 3])
+    z_desk = desk_height(depth, K, T, box)
+    assert z_desk == pytest.approx(0.0, abs=1e-6)
+    top = top_surface(depth, K, T, box, z_desk)
+    assert top is not None and top.axis_xy is None  # a disk has no long axis
+    assert top.p_top[:2] == pytest.approx(c, abs=1.5e-3)
+    assert top.p_top[2] == pytest.approx(h, abs=1e-6)
+    # a tall object: the palm stays 65 mm over the top; a short one: pads 24 mm over the desk
+    assert grasp_height(h, 0.0) == pytest.approx(h - 0.065)
+    assert grasp_height(0.05, 0.0) == pytest.approx(0.025)
+    assert grasp_height(0.03, 0.0) == pytest.approx(0.024)
+    with pytest.raises(InvalidInputError):
+        grasp_height(0.0, 0.1)
+    # nothing above the desk in the box: no top
+    assert top_surface(np.full_like(depth, H), K, T, box, 0.0) is None

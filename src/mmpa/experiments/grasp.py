@@ -49,6 +49,7 @@ class Config(BaseModel):
     use_predictor: bool = True
     others: int = 2  # other objects on the desk besides the target
     max_time: float = 15.0  # s of simulated time per attempt
+    threads: int = 1  # torch threads of the detector
 
     def n_trials(self) -> int:
         return 20 if self.trials is None else self.trials
@@ -135,14 +136,17 @@ def grasp_trial(
     q_look = look_configuration(rb, look, LOOK_HEIGHT)
     world.arm.move_joints(q_look)
     op = Operator(world, name, speed, rng)
+    probe = _Probe(world, name)
     t0 = time.perf_counter()
-    at_close: dict[str, float] = {}
 
     def on_event(e: str) -> None:
         if e == "close":
             op.release()
-            d = world.truth.T_map_object(name)[:3, 3] - world.truth.T_map_tcp()[:3, 3]
-            at_close.update(close_dx=float(np.hypot(d[0], d[1])), close_dz=float(d[2]))
+            probe.at_close()
+
+    def wait(dt: float) -> None:
+        op.step(dt)
+        probe.check()
 
     res = grasper.run(
         name,
@@ -150,7 +154,7 @@ def grasp_trial(
         world.gripper,
         world.camera,
         world.base,
-        op.step,
+        wait,
         lambda: world.time,
         on_event=on_event,
     )
@@ -164,22 +168,89 @@ def grasp_trial(
         and world.gripper.width() > 0.004
     )
     del inv
+    reason = res.reason if held or res.reason != "grasped" else "dropped"
     return {
         "object": name,
         "lighting": lighting,
         "speed": speed,
         "detected": res.detected_first,
         "grasped": held,
-        "reason": res.reason if held or res.reason != "grasped" else "dropped",
+        "reason": reason,
+        "failure": "" if held else probe.failure(reason, res),
         "time_to_grasp": res.time_to_grasp,
         "ticks": res.ticks,
         "lost_ticks": res.lost_ticks,
         "detect_ms": float(np.mean(res.detect_ms)) if res.detect_ms else float("nan"),
+        "capture_ms": float(np.mean(res.capture_ms)) if res.capture_ms else float("nan"),
         "loop_ms": 1000 * float(np.mean(res.loop_s)) if res.loop_s else float("nan"),
         "wall_s": time.perf_counter() - t0,
-        "close_dx": at_close.get("close_dx", float("nan")),
-        "close_dz": at_close.get("close_dz", float("nan")),
+        **probe.row(),
     }
+
+
+class _Probe:
+    """Evaluation only (truth): the gripper-object geometry when the gripper starts to close
+    (in the tool frame: ``close_dx`` along the pads, ``close_dy`` along the closing fingers,
+    ``close_dz`` object center minus TCP height), the first touch of the gripper on the object
+    before that (``touched_before_close``: the object was knocked) and a failure class."""
+
+    def __init__(self, world: Any, name: str) -> None:
+        from mmpa.perception.dataset import _footprint
+
+        self.world, self.name = world, name
+        m = world.model
+        self.body = m.body(name).id
+        self.gripper_geoms = {
+            m.geom(g).id for g in ("finger_left_pad", "finger_right_pad", "gripper_palm")
+        }
+        self.radius = _footprint(world, name)[0]
+        self.closing = False
+        self.touch_before: str = ""
+        self.close: dict[str, float] = {}
+
+    def check(self) -> None:
+        if self.closing or self.touch_before:
+            return
+        d, m = self.world.data, self.world.model
+        for i in range(d.ncon):
+            c = d.contact[i]
+            g1, g2 = int(c.geom1), int(c.geom2)
+            for a, b in ((g1, g2), (g2, g1)):
+                if a in self.gripper_geoms and m.geom_bodyid[b] == self.body:
+                    self.touch_before = m.geom(a).name
+                    return
+
+    def at_close(self) -> None:
+        self.closing = True
+        T_tcp = self.world.truth.T_map_tcp()
+        d = T_tcp[:3, :3].T @ (self.world.truth.T_map_object(self.name)[:3, 3] - T_tcp[:3, 3])
+        self.close = {"close_dx": float(d[0]), "close_dy": float(d[1]), "close_dz": float(-d[2])}
+
+    def row(self) -> dict[str, Any]:
+        nan = float("nan")
+        return {
+            "close_dx": self.close.get("close_dx", nan),
+            "close_dy": self.close.get("close_dy", nan),
+            "close_dz": self.close.get("close_dz", nan),
+            "touched_before_close": self.touch_before,
+        }
+
+    def failure(self, reason: str, res: Any) -> str:
+        """Why a trial failed: not found / lost track (timeout while the object was out of
+        view for most ticks) / never aligned / unreachable / knocked (the gripper touched the
+        object before closing) / off-center (the object center outside the open fingers at the
+        close) / missed / dropped (held at the close, fell in the lift or hold)."""
+        if reason in ("not found", "unreachable"):
+            return reason
+        if reason == "timeout":
+            return "lost track" if res.lost_ticks > 0.3 * max(res.ticks, 1) else "never aligned"
+        if self.touch_before:
+            return f"knocked ({self.touch_before})"
+        stroke = self.world.true_robot.gripper.stroke
+        dx, dy = self.close.get("close_dx", 0.0), self.close.get("close_dy", 0.0)
+        if abs(dy) > stroke / 2 - 0.3 * self.radius or abs(dx) > 0.011 + 0.5 * self.radius:
+            return "off-center"
+        return reason
 
 
 def random_table_scene_keep(
@@ -230,7 +301,13 @@ def make_grasper(cfg: Any, world: Any = None) -> Any:
     from mmpa.robot.description import default_robot
     from mmpa.servo.grasp import GraspConfig, TrackingGrasp
 
-    det = OracleDetector(world) if cfg.weights == "oracle" else Detector.load(cfg.weights)
+    if cfg.weights == "oracle":
+        det = OracleDetector(world)
+    else:
+        import torch
+
+        torch.set_num_threads(getattr(cfg, "threads", 1))
+        det = Detector.load(cfg.weights)
     gc = GraspConfig(
         preprocess_dark=cfg.preprocess_dark,
         use_predictor=cfg.use_predictor,
@@ -277,7 +354,8 @@ def run(cfg: Config, ctx: Context, progress: Callable[[str, float], None] | None
         + markdown_table(header, table, digits=2)
         + "\nFailures:\n"
         + "".join(
-            f"- {r['object']} / {r['lighting']} trial {r['trial']}: {r['reason']}\n"
+            f"- {r['object']} / {r['lighting']} trial {r['trial']}: {r['failure']} "
+            f"(close offset x {1000 * r['close_dx']:.0f} mm, y {1000 * r['close_dy']:.0f} mm)\n"
             for r in rows
             if not r["grasped"]
         )

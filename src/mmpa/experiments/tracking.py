@@ -10,6 +10,7 @@ and waits for the object to reappear); it gives no rates.
 
 from __future__ import annotations
 
+from collections import Counter
 from typing import Any
 
 import numpy as np
@@ -91,6 +92,26 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         "go when the gripper closes. Success = held off the desk 2 s after the lift. The "
         f"paper's limit ({PAPER_LIMIT} m/s) is marked in the plot.\n\n"
         + markdown_table(header, table, digits=2)
+        + "\nFailure classes (truth: see mmpa.experiments.grasp._Probe):\n"
+        + "".join(
+            f"- {speed} m/s, {'with' if pred else 'no'} predictor: "
+            + (
+                ", ".join(
+                    f"{k} x{v}"
+                    for k, v in sorted(
+                        Counter(
+                            x["failure"]
+                            for x in rows
+                            if x["speed"] == speed and x["predictor"] == pred and not x["grasped"]
+                        ).items()
+                    )
+                )
+                or "none"
+            )
+            + "\n"
+            for speed in cfg.speeds
+            for pred in cfg.predictor
+        )
     )
     return Outcome(rows=rows, summary=summary, report=report, figures=figures)
 

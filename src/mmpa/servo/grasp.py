@@ -3,29 +3,33 @@
 :class:`TrackingGrasp` runs over the robot interfaces (an arm that accepts streaming set-points
 ``command(q)``, a gripper, an RGB-D camera, a base) and a ``wait(dt)`` clock (the twin steps
 its physics; a real robot sleeps). Each tick (``rate_hz``): capture, detect the named object,
-locate its center in ``arm_base`` (nominal kinematics), update the constant-velocity Kalman
-filter, and run IBVS (eq. 10-12) toward the tracking point ``standoff`` above the object with
-the object's estimated velocity as feed-forward, plus the null-space manipulability term
-(eq. 13-14). When the error stays small the gripper descends along a straight line to the
-(predicted) grasp point, closes and lifts. When the object leaves the view the arm holds
-still and waits for it to reappear (the paper's behaviour); with the predictor it first keeps
-following the prediction for ``coast_time``. The base creeps forward when the object lies
-beyond ``reach_limit``. Every set-point is checked against the joint limits and the joint
-speed limits before it is sent.
+locate it in ``arm_base`` (nominal kinematics; by default its top center and top height from
+all the box's depth pixels, :mod:`mmpa.servo.target`; the paper's box center with
+``grasp_point="box"``), update the constant-velocity Kalman filter, and run IBVS (eq. 10-12)
+toward the tracking point ``standoff`` above the object with the object's estimated velocity
+as feed-forward, plus the null-space manipulability term (eq. 13-14). When the error stays
+small (and, with the predictor, the object has moved predictably for ``steady_ticks``) the TCP
+descends blind at ``descend_speed`` to the grasp height (:func:`mmpa.servo.target.
+grasp_height`), following the object's predicted position ``arm_lag`` ahead of each
+set-point; it closes as soon as the encoders say the TCP arrived, then lifts. When the object
+leaves the view the arm holds still and waits for it to reappear (the paper's behaviour); with
+the predictor it first keeps following the prediction for ``coast_time``. The base creeps
+forward when the object lies beyond ``reach_limit``. Every set-point is clipped to the joint
+limits and scaled to the joint speed limits before it is sent.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.errors import InvalidInputError, MMPAError, UnknownNameError, UnreachableError
 from mmpa.geometry import Array, apply, inv, make_T
-from mmpa.perception.locate import DepthMissingError, deproject, locate, look_at
+from mmpa.perception.locate import DepthMissingError, locate, look_at
 from mmpa.perception.preprocess import dark_preprocess, is_dark
 from mmpa.robot.description import RobotDescription
 from mmpa.robot.kinematics import fk, ik_nearest, jacobian
@@ -39,6 +43,7 @@ from mmpa.servo.ibvs import (
 )
 from mmpa.servo.nullspace import manipulability_gradient, null_space_projector
 from mmpa.servo.predictor import ConstantVelocityKF, PredictorConfig
+from mmpa.servo.target import box_points, desk_height, grasp_height, top_surface
 
 __all__ = ["GraspConfig", "GraspResult", "TrackingGrasp", "look_configuration"]
 
@@ -53,9 +58,18 @@ class GraspConfig(BaseModel):
     rate_hz: float = Field(20.0, gt=0)
     align_tol: float = Field(0.012, gt=0)  # m, lateral error of the tracking point
     align_ticks: int = Field(3, ge=1)
+    # grasp trigger (improvement): descend only while the object moves predictably, i.e. the
+    # predictor's last ``steady_ticks`` innovations stay below ``steady_tol`` (a turn of the
+    # object during the blind descent is the main cause of misses at speed)
+    steady_tol: float = Field(0.004, gt=0)  # m
+    steady_ticks: int = Field(3, ge=0)
     final_standoff: float = Field(0.16, gt=0)  # m: last tracking height before the descent
-    descend_time: float = Field(0.3, gt=0)  # s, blind straight-line descent
-    close_delay: float = Field(0.05, ge=0)  # s from the end of the descent to closing
+    descend_speed: float = Field(1.2, gt=0)  # m/s of the blind descent
+    descend_rate_hz: float = Field(50.0, gt=0)  # set-points of the descent
+    arm_lag: float = Field(0.03, ge=0)  # s, set-point to TCP (latency compensation)
+    close_delay: float = Field(0.0, ge=0)  # s from the arrival to closing
+    settle_tol: float = Field(0.006, gt=0)  # m: the TCP this near the grasp height = arrived
+    settle_max: float = Field(0.3, ge=0)  # s waited at most for the arrival
     coast_time: float = Field(1.0, ge=0)  # s of following the prediction without detections
     max_time: float = Field(25.0, gt=0)  # s
     lift: float = Field(0.12, gt=0)  # m
@@ -65,8 +79,12 @@ class GraspConfig(BaseModel):
     base_speed: float = Field(0.08, ge=0)
     # the paper's dark preprocessing; off: measured to hurt a detector trained on dark images
     preprocess_dark: bool = False
-    center_correction: bool = True  # improvement: object center behind the surface point
-    axis_from_depth: bool = True  # improvement: principal axis of the depth foreground
+    # improvement: "top" = the top center and top height from all the box's depth pixels
+    # (servo.target); "box" = the paper's box center deprojected at its depth
+    grasp_point: Literal["top", "box"] = "top"
+    palm_clearance: float = Field(0.065, gt=0)  # m, TCP at most this far below the top
+    center_correction: bool = True  # "box" only: object center behind the surface point
+    axis_from_depth: bool = True  # "box" only: principal axis of the depth foreground
     joint_margin: float = Field(0.05, ge=0)  # rad kept from the joint limits
 
 
@@ -82,7 +100,20 @@ class GraspResult:
     ticks: int
     lost_ticks: int
     detect_ms: list[float] = field(default_factory=list)
+    capture_ms: list[float] = field(default_factory=list)
     loop_s: list[float] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One located detection: ``p`` (3,) the tracked object point in ``arm_base`` (m; the top
+    center, or the paper's box center), ``top_z``/``desk_z`` heights (m; ``desk_z`` NaN when
+    unknown), ``axis`` (2,) unit horizontal grasp axis in ``arm_base`` or None."""
+
+    p: Array
+    top_z: float
+    desk_z: float
+    axis: Array | None
 
 
 def look_configuration(
@@ -126,7 +157,11 @@ class TrackingGrasp:
         self._axis_ok = False
 
     # ------------------------------------------------------------------ perception
-    def _measure(self, frame: Any, name: str, q: Array, kf: ConstantVelocityKF) -> tuple[Any, Any]:
+    def _measure(
+        self, frame: Any, name: str, q: Array, kf: ConstantVelocityKF
+    ) -> tuple[Any, Measurement | None]:
+        """Detect ``name`` in ``frame`` (the detection nearest the prediction when several)
+        and locate it with the nominal kinematics at the encoder reading ``q``."""
         img = frame.color
         if self.cfg.preprocess_dark and is_dark(img):
             img = dark_preprocess(img)
@@ -135,71 +170,58 @@ class TrackingGrasp:
             return None, None
         T_cam = fk(self.robot.arm.dh, q) @ self._T_fc
         K = frame.intrinsics.K
-        if kf.initialized:  # the detection nearest the prediction
-            p = kf.position()
-            P = apply(inv(T_cam), p)
+        if kf.initialized and len(dets) > 1:  # the detection nearest the prediction
+            P = apply(inv(T_cam), kf.position())
             if P[2] > 0:
                 uv = K[:2, :2] @ (P[:2] / P[2]) + K[:2, 2]
                 dets.sort(key=lambda d: float(np.linalg.norm(d.center - uv)))
         d = dets[0]
+        dz = desk_height(frame.depth, K, T_cam, d.box)
+        if self.cfg.grasp_point == "top":
+            if dz is None:
+                return d, None
+            top = top_surface(frame.depth, K, T_cam, d.box, dz)
+            if top is None:
+                return d, None
+            return d, Measurement(top.p_top, float(top.p_top[2]), dz, top.axis_xy)
+        # the paper's box center (+ the center correction and the principal axis of the depth
+        # foreground in the image)
         try:
             loc = locate(d.box, frame.depth, K, T_cam)
         except DepthMissingError:
             return d, None
-        # desk height: depth on a ring just outside the box (improvement)
-        dz = self._desk_z(frame, d.box, K, T_cam)
-        self._axis_ok = False
+        axis = None
         if self.cfg.axis_from_depth and dz is not None:
-            axis = self._axis_from_depth(frame, d.box, K, T_cam, dz)
-            if axis is not None:
-                loc = locate(d.box, frame.depth, K, T_cam, axis_2d=axis)
-                self._axis_ok = True
-        return d, (loc, dz)
+            a2 = self._axis_from_depth(frame, d.box, K, T_cam, dz)
+            if a2 is not None:
+                loc = locate(d.box, frame.depth, K, T_cam, axis_2d=a2)
+                axis = loc.axis_arm_base[:2] / max(np.linalg.norm(loc.axis_arm_base[:2]), 1e-9)
+        elif not self.cfg.axis_from_depth:
+            bw, bh = d.box[2] - d.box[0], d.box[3] - d.box[1]
+            if max(bw, bh) >= 1.3 * min(bw, bh) and abs(loc.axis_arm_base[2]) < 0.9:
+                axis = loc.axis_arm_base[:2] / max(np.linalg.norm(loc.axis_arm_base[:2]), 1e-9)
+        p = loc.center_arm_base if self.cfg.center_correction else loc.p_arm_base
+        z_desk = dz if dz is not None else float("nan")
+        return d, Measurement(np.asarray(p, float), float(loc.p_arm_base[2]), z_desk, axis)
 
     @staticmethod
     def _axis_from_depth(
         frame: Any, box: Array, K: Array, T_cam: Array, desk_z: float
     ) -> Array | None:
-        """Improvement over the longest box side: the principal axis of the pixels in the box
-        that stand above the desk (depth image), so diagonal objects get the right axis."""
+        """The principal image axis of the pixels in the box that stand above the desk."""
         h, w = frame.depth.shape
         x1, y1, x2, y2 = np.clip(np.round(box), 0, [w, h, w, h]).astype(int)
-        d = frame.depth[y1:y2, x1:x2]
-        if d.size < 9:
-            return None
         vv, uu = np.mgrid[y1:y2, x1:x2]
-        rays = np.stack([(uu - K[0, 2]) / K[0, 0], (vv - K[1, 2]) / K[1, 1], np.ones_like(d)], -1)
-        z_arm = (rays * d[..., None]) @ T_cam[2, :3] + T_cam[2, 3]
-        mask = (d > 0) & (z_arm > desk_z + 0.008)
+        uu, vv = uu.ravel(), vv.ravel()
+        p, keep = box_points(frame.depth, K, T_cam, uu, vv)
+        mask = p[:, 2] > desk_z + 0.008
         if mask.sum() < 20:
             return None
-        c = np.cov(np.stack([uu[mask], vv[mask]]).astype(float))
+        c = np.cov(np.stack([uu[keep][mask], vv[keep][mask]]).astype(float))
         ev, V = np.linalg.eigh(c)
         if ev[1] < 1.5 * max(ev[0], 1e-9):  # no clear long axis (ball, cube, upright cylinder)
             return None
         return V[:, 1]
-
-    @staticmethod
-    def _desk_z(frame: Any, box: Array, K: Array, T_cam: Array) -> float | None:
-        h, w = frame.depth.shape
-        x1, y1, x2, y2 = box
-        m = 0.15 * max(x2 - x1, y2 - y1) + 4
-        xs = np.clip(np.array([x1 - m, x2 + m]), 0, w - 1).astype(int)
-        ys = np.clip(np.array([y1 - m, y2 + m]), 0, h - 1).astype(int)
-        pts = []
-        for u in np.linspace(xs[0], xs[1], 12).astype(int):
-            for v in (ys[0], ys[1]):
-                z = frame.depth[v, u]
-                if z > 0:
-                    pts.append(apply(T_cam, deproject(u, v, float(z), K))[2])
-        for v in np.linspace(ys[0], ys[1], 12).astype(int):
-            for u in (xs[0], xs[1]):
-                z = frame.depth[v, u]
-                if z > 0:
-                    pts.append(apply(T_cam, deproject(u, v, float(z), K))[2])
-        if len(pts) < 5:
-            return None
-        return float(np.percentile(pts, 30))
 
     # ------------------------------------------------------------------ control
     def _send(self, arm: Any, q_cmd: Array) -> Array:
@@ -266,7 +288,12 @@ class TrackingGrasp:
         clock: Callable[[], float],
         on_event: Callable[[str], None] | None = None,
     ) -> GraspResult:
-        """Track and grasp the object called ``name``; the arm starts at a view of the desk."""
+        """Track and grasp the object called ``name``; the arm starts at a view of the desk.
+
+        Phases: track at ``ibvs.standoff`` above the object's top, then at ``final_standoff``
+        once aligned; when aligned again, :meth:`_descend` (the object's predicted motion
+        followed, the grasp height from the top and the desk), close, lift. ``on_event`` gets
+        "descend" and "close" when those phases start."""
         import time
 
         classes = self.det.cfg.classes
@@ -280,43 +307,46 @@ class TrackingGrasp:
         q_cmd = np.asarray(arm.joint_positions(), float)
         t0 = clock()
         last_seen = -np.inf
-        p_meas = None
+        p_meas: Array | None = None
         desk_z: float | None = None
         top_z: float | None = None
-        center_z = np.inf
         yaw = None
         aligned = 0
         standoff = cfg.ibvs.standoff
         ticks = lost = 0
         first = None
+        innovations: list[float] = []
         res = GraspResult(False, "timeout", False, float("nan"), 0, 0)
         gripper.open()
         while clock() - t0 < cfg.max_time:
             w0 = time.perf_counter()
             ticks += 1
             q_meas = np.asarray(arm.joint_positions(), float)
+            c0 = time.perf_counter()
             frame = camera.capture()
             d0 = time.perf_counter()
-            d, meas = self._measure(frame, name, q_meas, kf)
+            res.capture_ms.append(1000 * (d0 - c0))
+            _, meas = self._measure(frame, name, q_meas, kf)
             res.detect_ms.append(1000 * (time.perf_counter() - d0))
             if first is None:
-                first = d is not None
+                first = meas is not None
             now = clock()
             if meas is not None:
-                loc, dz = meas
-                p_meas = loc.center_arm_base if cfg.center_correction else loc.p_arm_base
+                p_meas = meas.p
                 kf.update(p_meas)
-                top_z = float(loc.p_arm_base[2])
-                center_z = float(p_meas[2])
-                if dz is not None:
+                innovations.append(kf.innovation)
+                top_z = meas.top_z
+                if np.isfinite(meas.desk_z):
+                    dz = meas.desk_z
                     desk_z = dz if desk_z is None else 0.7 * desk_z + 0.3 * dz
-                if name not in SYMMETRIC:
-                    yaw = self._grasp_yaw(loc, d.box, q_cmd, yaw)
+                if name not in SYMMETRIC and meas.axis is not None:
+                    yaw = self._grasp_yaw(meas.axis, q_cmd)
                 last_seen = now
             else:
                 lost += 1
+                innovations.append(float("inf"))
             coasting = cfg.use_predictor and kf.initialized and now - last_seen < cfg.coast_time
-            if now - last_seen > 1e-9 and not coasting and meas is None:
+            if meas is None and not coasting:
                 # paper: stop and wait for the object to reappear
                 q_cmd = self._send(arm, q_cmd)
                 base.stop()
@@ -343,30 +373,24 @@ class TrackingGrasp:
                 res.reason = "unreachable"
                 break
             q_cmd = self._send(arm, q_next)
-            aligned = aligned + 1 if (err[0] < cfg.align_tol and err[1] < 0.03) else 0
+            ok = meas is not None and err[0] < cfg.align_tol and err[1] < 0.03
+            aligned = aligned + 1 if ok else 0
+            recent = innovations[-cfg.steady_ticks :] if cfg.steady_ticks else []
+            steady = not (cfg.use_predictor and recent) or max(recent) < cfg.steady_tol
+            if cfg.use_predictor and len(recent) < cfg.steady_ticks:
+                steady = False
             wait(dt)
             kf.predict(dt)
             res.loop_s.append(time.perf_counter() - w0)
             if aligned >= cfg.align_ticks and standoff > cfg.final_standoff:
                 standoff, aligned = cfg.final_standoff, 0  # closer, still in view
                 continue
-            if aligned >= cfg.align_ticks and desk_z is not None and top_z is not None:
+            if aligned >= cfg.align_ticks and steady and desk_z is not None and top_z is not None:
                 base.stop()
+                if on_event:
+                    on_event("descend")
                 try:
-                    q_cmd = self._descend(
-                        arm,
-                        q_cmd,
-                        kf,
-                        p_meas,
-                        top_z,
-                        desk_z,
-                        center_z,
-                        yaw,
-                        wait,
-                        clock,
-                        camera,
-                        name,
-                    )
+                    q_cmd = self._descend(arm, q_cmd, kf, p_meas, top_z, desk_z, yaw, wait)
                 except (UnreachableError, MMPAError):
                     res.reason = "unreachable"
                     break
@@ -385,26 +409,14 @@ class TrackingGrasp:
             res.reason = "not found"
         return res
 
-    def _grasp_yaw(self, loc: Any, box: Array, q_cmd: Array, yaw: float | None) -> float | None:
-        """Tool x along the graspable edge (fingers close across it), the equivalent modulo pi
-        nearest the current tool heading; kept when the box is nearly square."""
-        b = np.asarray(box)
-        bw, bh = b[2] - b[0], b[3] - b[1]
-        if self.cfg.axis_from_depth and not self._axis_ok:
-            return yaw
-        if not self.cfg.axis_from_depth and max(bw, bh) < 1.3 * min(bw, bh):
-            return yaw
-        a = loc.axis_arm_base
-        if abs(a[2]) > 0.9:
-            return yaw
-        target = float(np.arctan2(a[1], a[0]))
+    def _grasp_yaw(self, axis_xy: Array, q_cmd: Array) -> float:
+        """Tool x along the object's horizontal long axis ``axis_xy`` (the fingers close
+        across it): of the two equivalent headings, the one nearest the current tool x."""
+        target = float(np.arctan2(axis_xy[1], axis_xy[0]))
         T = fk(self.robot.arm.dh, q_cmd, self._T_ft)
         now = float(np.arctan2(T[1, 0], T[0, 0]))
         k = np.round((now - target) / np.pi)
         return target + k * np.pi
-
-    def _grasp_z(self, top_z: float, desk_z: float, center_z: float = np.inf) -> float:
-        return max(desk_z + self.cfg.pad_clearance, min(0.5 * (top_z + desk_z), center_z))
 
     def _descend(
         self,
@@ -414,33 +426,34 @@ class TrackingGrasp:
         p_meas: Array | None,
         top_z: float,
         desk_z: float,
-        center_z: float,
         yaw: float | None,
         wait: Callable[[float], None],
-        clock: Callable[[], float],
-        camera: Any,
-        name: str,
     ) -> Array:
-        """Straight-line descent of the TCP onto the (predicted) grasp point."""
+        """Blind descent of the TCP to the grasp height (:func:`grasp_height`) at
+        ``descend_speed``, set-points at ``descend_rate_hz``. Horizontally the TCP follows the
+        object: each set-point is the predicted position ``arm_lag`` s after it is sent
+        (latency compensation); without the predictor, the last measured position."""
         cfg = self.cfg
         dh = self.robot.arm.dh
-        dt = 1.0 / cfg.rate_hz
+        dt = 1.0 / cfg.descend_rate_hz
         T0 = fk(dh, q_cmd, self._T_ft)
-        R = T0[:3, :3]
-        if yaw is not None:
-            R = _tool_down(yaw)
+        R = T0[:3, :3] if yaw is None else _tool_down(yaw)
         z0 = T0[2, 3]
-        zg = self._grasp_z(top_z, desk_z, center_z)
-        n = max(int(np.ceil(cfg.descend_time / dt)), 1)
+        zg = grasp_height(top_z, desk_z, cfg.pad_clearance, cfg.palm_clearance)
+        n = max(int(np.ceil(abs(z0 - zg) / cfg.descend_speed / dt)), 1)
         q_min, q_max = self.robot.arm.q_limits
-        for k in range(1, n + 1):
-            remaining = (n - k) * dt
+        n_settle = int(np.ceil(cfg.settle_max / dt))
+        for k in range(1, n + 1 + n_settle):
+            if k > n:  # arrived? (encoders, nominal kinematics): close as soon as it is there
+                z_meas = fk(dh, np.asarray(arm.joint_positions(), float), self._T_ft)[2, 3]
+                if abs(z_meas - zg) < cfg.settle_tol:
+                    break
             if cfg.use_predictor and kf.initialized:
-                p = kf.position(ahead=remaining + cfg.close_delay)
+                p = kf.position(ahead=dt + cfg.arm_lag)
             else:
                 p = p_meas
-            s = k / n
-            target = np.array([p[0], p[1], z0 + s * (zg - z0)])
+            assert p is not None
+            target = np.array([p[0], p[1], z0 + min(k / n, 1.0) * (zg - z0)])
             T = make_T(R, target) @ inv(self._T_ft)
             q = ik_nearest(dh, T, q_cmd, q_min, q_max)
             if np.max(np.abs(q - q_cmd)) > 0.5:
@@ -449,7 +462,8 @@ class TrackingGrasp:
             q_cmd = self._send(arm, q_cmd + qdot * dt)
             wait(dt)
             kf.predict(dt)
-        wait(cfg.close_delay)
+        if cfg.close_delay > 0:
+            wait(cfg.close_delay)
         return q_cmd
 
     def _lift(self, arm: Any, q_cmd: Array) -> None:

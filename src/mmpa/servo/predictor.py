@@ -19,7 +19,7 @@ __all__ = ["ConstantVelocityKF", "PredictorConfig"]
 
 class PredictorConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    accel_sigma: float = Field(0.3, gt=0)  # m/s^2 / sqrt(Hz)
+    accel_sigma: float = Field(1.0, gt=0)  # m/s^2 / sqrt(Hz)
     meas_sigma: float = Field(0.005, gt=0)  # m
     init_speed_sigma: float = Field(0.3, gt=0)  # m/s
     gate: float = Field(0.15, gt=0)  # m: a measurement this far from the prediction resets
@@ -30,6 +30,8 @@ class ConstantVelocityKF:
         self.cfg = cfg or PredictorConfig()
         self.x: Array | None = None
         self.P = np.eye(6)
+        #: ``|z - p_predicted|`` (m) of the last update; ``inf`` after a (re)initialization
+        self.innovation = float("inf")
 
     @property
     def initialized(self) -> bool:
@@ -37,6 +39,7 @@ class ConstantVelocityKF:
 
     def reset(self) -> None:
         self.x = None
+        self.innovation = float("inf")
 
     def predict(self, dt: float) -> None:
         if dt < 0 or not np.isfinite(dt):
@@ -61,7 +64,9 @@ class ConstantVelocityKF:
         if self.x is None or np.linalg.norm(z - self.x[:3]) > self.cfg.gate:
             self.x = np.concatenate([z, np.zeros(3)])
             self.P = np.diag([r2] * 3 + [self.cfg.init_speed_sigma**2] * 3)
+            self.innovation = float("inf")
             return
+        self.innovation = float(np.linalg.norm(z - self.x[:3]))
         H = np.hstack([np.eye(3), np.zeros((3, 3))])
         S = H @ self.P @ H.T + r2 * np.eye(3)
         K = self.P @ H.T @ np.linalg.inv(S)
