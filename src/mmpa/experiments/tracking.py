@@ -72,7 +72,8 @@ def run(cfg: Config, ctx: Context) -> Outcome:
                     ctx.progress("tracking", len(rows) / total)
     table, summary = [], {}
     for speed in cfg.speeds:
-        line: list[Any] = [speed, "yes" if speed < PAPER_LIMIT else "no (loses it)"]
+        paper = "yes" if speed < PAPER_LIMIT else "its limit" if speed == PAPER_LIMIT else "no"
+        line: list[Any] = [speed, paper]
         for pred in cfg.predictor:
             r = [x for x in rows if x["speed"] == speed and x["predictor"] == pred]
             ok = float(np.mean([x["grasped"] for x in r]))
