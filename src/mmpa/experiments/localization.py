@@ -74,21 +74,29 @@ class Config(BaseModel):
     kidnap_amcl: AMCLConfig = AMCLConfig(recovery_alpha_slow=0.001, recovery_alpha_fast=0.1)
 
 
+def corridor_start(nav: CostMap, rng: np.random.Generator, cfg: Any) -> np.ndarray:
+    """A random start ``[x, y, theta]`` in the corridor (``cfg.corridor_x``, ``cfg.corridor_y``)
+    whose whole footprint is clear: obstacle distance >= ``cfg.start_clearance`` (m)."""
+    start = np.zeros(3)
+    for _ in range(1000):
+        start = np.array(
+            [
+                rng.uniform(*cfg.corridor_x),
+                rng.uniform(*cfg.corridor_y),
+                rng.uniform(-np.pi, np.pi),
+            ]
+        )
+        c, r = nav.grid.world_to_cell(start[:2])
+        if nav.dist[r, c] >= cfg.start_clearance:
+            break
+    return start
+
+
 def _trial(cfg: Config, k: int, method: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     rng = np.random.default_rng([cfg.seed, k])
     with SimWorld(errors=ErrorModelConfig(seed=cfg.seed), site="0", episode=k) as world:
         nav = CostMap(twin_nav_map(world, cfg.resolution))
-        for _ in range(1000):  # a start where the whole footprint is clear of obstacles
-            start = np.array(
-                [
-                    rng.uniform(*cfg.corridor_x),
-                    rng.uniform(*cfg.corridor_y),
-                    rng.uniform(-np.pi, np.pi),
-                ]
-            )
-            c, r = nav.grid.world_to_cell(start[:2])
-            if nav.dist[r, c] >= cfg.start_clearance:
-                break
+        start = corridor_start(nav, rng, cfg)
         guess = start + np.array(
             [*rng.normal(0, cfg.init_sigma_xy, 2), rng.normal(0, cfg.init_sigma_theta)]
         )

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from mmpa.experiments.localization import corridor_start
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.geometry import Array, se2_to_T, wrap_angle
 from mmpa.navigation.mission import NavigateConfig
@@ -92,23 +93,6 @@ class Config(BaseModel):
 
     def n_trials(self) -> int:
         return 20 if self.trials is None else self.trials
-
-
-def corridor_start(world: Any, nav: Any, rng: np.random.Generator, cfg: Config) -> Array:
-    """A random start ``[x, y, theta]`` in the corridor whose footprint is clear."""
-    start = np.zeros(3)
-    for _ in range(1000):
-        start = np.array(
-            [
-                rng.uniform(*cfg.corridor_x),
-                rng.uniform(*cfg.corridor_y),
-                rng.uniform(-np.pi, np.pi),
-            ]
-        )
-        c, r = nav.grid.world_to_cell(start[:2])
-        if nav.dist[r, c] >= cfg.start_clearance:
-            break
-    return start
 
 
 def desk_front_legs(world: Any) -> Array:
@@ -200,7 +184,7 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
     w0 = time.perf_counter()
     with SimWorld(errors=ErrorModelConfig(seed=cfg.seed), site="0", episode=k) as world:
         nav = CostMap(twin_nav_map(world, cfg.resolution))
-        start = corridor_start(world, nav, rng, cfg)
+        start = corridor_start(nav, rng, cfg)
         guess = start + np.array(
             [*rng.normal(0, cfg.init_sigma_xy, 2), rng.normal(0, cfg.init_sigma_theta)]
         )
