@@ -86,14 +86,26 @@ def _check(r: Registration, T: np.ndarray, et: float = 1.5e-3, er: float = 0.004
 
 def test_recovers_known_transform_colored() -> None:
     src, tgt = _pair(T_TRUE)
-    r = register(src, tgt, CFG)
+    paper = CFG.model_copy(update={"color_mode": "paper"})
+    r = register(src, tgt, paper)
     _check(r, T_TRUE)
     assert r.stages["method"] == "colored_icp"
     assert r.fitness > 0.8 and r.rmse < 5e-3 and r.n_correspondences > 1000
     assert r.reason == "" and r.seconds > 0
     # p_target = T p_source: the inverse problem gives the inverse transform
-    r2 = register(tgt, src, CFG)
+    r2 = register(tgt, src, paper)
     _check(r2, inv(T_TRUE))
+
+
+def test_auto_uses_geometry_when_it_constrains_the_pose() -> None:
+    """``auto``: the bench's geometry pins all six directions, so point-to-plane ICP alone,
+    without the photometric term (and without estimating the source's normals)."""
+    src, tgt = _pair(T_TRUE)
+    r = register(src, tgt, CFG)
+    _check(r, T_TRUE)
+    assert r.stages["method"] == "point_to_plane_icp"
+    assert r.stages["min_information"] >= CFG.geometric_min_information
+    assert "colored_icp0_s" not in r.stages
 
 
 def test_geometric_icp_without_color() -> None:
@@ -127,6 +139,10 @@ def test_pure_color_plane_is_refused_textured_plane_is_not() -> None:
     r = register(src, tgt, CFG, init=np.eye(4))
     _check(r, T, et=2e-3)
     assert r.stages["min_information"] >= CFG.min_information
+    # auto: point-to-plane first, found degenerate, then colored ICP
+    assert r.stages["method"] == "colored_icp" and "colored_icp0_s" in r.stages
+    assert "degenerate" in r.stages["geometric_reason"]
+    assert r.stages["geometric_information"] < CFG.min_information
     # ... but not by geometry alone
     geo = CFG.model_copy(update={"color_mode": "geometric"})
     r = register(src, tgt, geo, init=np.eye(4))

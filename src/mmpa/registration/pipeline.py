@@ -35,7 +35,7 @@ from __future__ import annotations
 import re
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import open3d as o3d
@@ -77,10 +77,12 @@ class Registration:
 class Prepared:
     """A cloud cleaned and downsampled once by :func:`prepare`, reusable across calls.
 
-    ``levels`` maps each ICP voxel size (m) to an Open3D cloud with normals (and colors);
+    ``levels`` maps each ICP voxel size (m) to an Open3D cloud (with colors when ``colored``);
     ``coarse`` is the cloud at ``coarse_voxel``; ``colored`` whether the cloud carries color;
     ``reason`` is non-empty when the cloud is unusable (too few points, non-finite points with
-    ``nan_policy="reject"``); ``stats`` holds counts and timings.
+    ``nan_policy="reject"``); ``stats`` holds counts and timings. Normals (needed only where
+    the cloud is the ICP target, and on the coarse cloud for FPFH) and FPFH descriptors are
+    computed on first use and kept: a taught cloud prepared once pays for them once.
     """
 
     levels: dict[float, o3d.geometry.PointCloud]
@@ -96,12 +98,30 @@ class Prepared:
         """Points at the finest voxel level."""
         return len(self.levels[min(self.levels)].points) if self.levels else 0
 
+    def with_normals(self, voxel: float, cfg: RegistrationConfig) -> o3d.geometry.PointCloud:
+        """The cloud of level ``voxel`` (or the coarse cloud when ``voxel`` is
+        ``cfg.coarse_voxel``) with unit normals oriented to the camera, estimated on first use
+        from ``cfg.normal_max_nn`` neighbours within ``cfg.normal_radius_factor * voxel``."""
+        pc = self.levels.get(voxel)
+        if pc is None:
+            if voxel != cfg.coarse_voxel:
+                raise ConfigError(f"no level of {voxel} m in this prepared cloud")
+            pc = self.coarse
+        done = self._cache.setdefault("normals", set())
+        if voxel not in done:
+            t0 = time.perf_counter()
+            _normals(pc, voxel, cfg)
+            done.add(voxel)
+            self.stats["normals_s"] = self.stats.get("normals_s", 0.0) + time.perf_counter() - t0
+        return pc
+
     def fpfh(self, cfg: RegistrationConfig) -> o3d.pipelines.registration.Feature:
         """FPFH descriptors (33-d) of :attr:`coarse`, computed on first use and cached."""
         if "fpfh" not in self._cache:
+            coarse = self.with_normals(cfg.coarse_voxel, cfg)
             t0 = time.perf_counter()
             r = cfg.fpfh_radius_factor * cfg.coarse_voxel
-            self._cache["fpfh"] = _reg.compute_fpfh_feature(self.coarse, _KD(r, cfg.fpfh_max_nn))
+            self._cache["fpfh"] = _reg.compute_fpfh_feature(coarse, _KD(r, cfg.fpfh_max_nn))
             self.stats["fpfh_s"] = time.perf_counter() - t0
         return self._cache["fpfh"]
 
@@ -118,7 +138,8 @@ def _normals(pc: o3d.geometry.PointCloud, voxel: float, cfg: RegistrationConfig)
 def prepare(
     cloud: Any, cfg: RegistrationConfig | None = None, *, features: bool = True
 ) -> Prepared:
-    """Crop, clean, downsample, estimate normals (and FPFH if ``features``) once.
+    """Crop, clean and downsample once (and with ``features`` the coarse normals and FPFH;
+    everything else is computed on first use, see :class:`Prepared`).
 
     ``cloud`` is a :class:`mmpa.robot.interfaces.PointCloud` (or any object with ``points``
     (N, 3) m in the camera optical frame and ``colors`` (N, 3) in [0, 1] or ``None``). Raises
@@ -186,12 +207,9 @@ def prepare(
     levels = {voxels[0]: fine}
     for v in voxels[1:]:
         levels[v] = fine.voxel_down_sample(v)
-    for v, pc in levels.items():
-        _normals(pc, v, cfg)
     coarse = levels.get(cfg.coarse_voxel)
     if coarse is None:
         coarse = fine.voxel_down_sample(cfg.coarse_voxel)
-        _normals(coarse, cfg.coarse_voxel, cfg)
     stats["n_coarse"] = len(coarse.points)
     prep = Prepared(levels, coarse, colored, "", key, stats)
     if features:
@@ -274,6 +292,7 @@ def _icp(
     colored: bool,
     cfg: RegistrationConfig,
     stages: dict[str, Any],
+    prefix: str = "",
 ) -> tuple[Array, Any, IcpScale]:
     est = (
         _reg.TransformationEstimationForColoredICP(lambda_geometric=cfg.lambda_geometric)
@@ -284,14 +303,14 @@ def _icp(
     for i, sc in enumerate(scales):
         t0 = time.perf_counter()
         crit = _reg.ICPConvergenceCriteria(sc.relative, sc.relative, sc.max_iter)
-        a, b = src.levels[sc.voxel], tgt.levels[sc.voxel]
+        a, b = src.levels[sc.voxel], tgt.with_normals(sc.voxel, cfg)
         if colored:
             res = _reg.registration_colored_icp(a, b, sc.max_distance, T, est, crit)
         else:
             res = _reg.registration_icp(a, b, sc.max_distance, T, est, crit)
         T = np.asarray(res.transformation).copy()
-        stages[f"icp{i}_s"] = time.perf_counter() - t0
-        stages[f"icp{i}_fitness"] = float(res.fitness)
+        stages[f"{prefix}icp{i}_s"] = time.perf_counter() - t0
+        stages[f"{prefix}icp{i}_fitness"] = float(res.fitness)
     return T, res, scales[-1]
 
 
@@ -341,15 +360,15 @@ def register(
     for name, p in (("source", src), ("target", tgt)):
         if p.reason:
             return result(np.eye(4), False, f"{name}: {p.reason}")
+    both = src.colored and tgt.colored
+    if cfg.color_mode == "colored" and not both:
+        return result(np.eye(4), False, "color_mode='colored' but a cloud has no color")
     if cfg.color_mode == "geometric":
-        colored = False
-    elif cfg.color_mode == "colored":
-        if not (src.colored and tgt.colored):
-            return result(np.eye(4), False, "color_mode='colored' but a cloud has no color")
-        colored = True
-    else:
-        colored = src.colored and tgt.colored
-    stages["method"] = "colored_icp" if colored else "point_to_plane_icp"
+        methods: tuple[bool, ...] = (False,)
+    elif cfg.color_mode in ("colored", "paper"):
+        methods = (both,)
+    else:  # auto: geometry first, the photometric term only where geometry is weak
+        methods = (False, True) if both else (False,)
 
     if init is None:
         t1 = time.perf_counter()
@@ -369,72 +388,103 @@ def register(
         stages["coarse_s"] = time.perf_counter() - t1
         stages["coarse_fitness"] = float(coarse.fitness)
         scales = cfg.scales
-        max_shift, max_rot, what = cfg.max_fine_shift, cfg.max_fine_rotation_deg, "coarse"
+        limits = (cfg.max_fine_shift, cfg.max_fine_rotation_deg, "coarse")
     else:
         T0 = init
         scales = cfg.init_scales
-        max_shift, max_rot, what = cfg.max_init_shift, cfg.max_init_rotation_deg, "initial"
+        limits = (cfg.max_init_shift, cfg.max_init_rotation_deg, "initial")
     stages["T_coarse"] = T0
+    t1 = time.perf_counter()
+    for sc in scales:  # the fine stage needs the target's normals
+        tgt.with_normals(sc.voxel, cfg)
+    stages["normals_s"] = time.perf_counter() - t1
 
+    accepted: _Fine | None = None
+    fine = None
+    for j, colored in enumerate(methods):
+        stages["method"] = "colored_icp" if colored else "point_to_plane_icp"
+        prefix = "colored_" if j else ""
+        fine = _fine_stage(src, tgt, T0, scales, colored, cfg, stages, prefix, limits, init)
+        if fine.ok:
+            accepted = fine
+        if fine.ok and (colored or fine.information >= cfg.geometric_min_information):
+            break
+        if j + 1 < len(methods):
+            stages["geometric_information"] = fine.information
+            stages["geometric_reason"] = fine.reason or (
+                f"geometric information {fine.information:.2e} < "
+                f"{cfg.geometric_min_information:.1e}"
+            )
+    assert fine is not None
+    if accepted is not None and not fine.ok:  # colored ICP failed where geometry passed
+        fine = accepted
+        stages["method"] = "point_to_plane_icp"
+    stages["min_information"] = fine.information
+    return result(fine.T, fine.ok, fine.reason, fine.fitness, fine.rmse, fine.n)
+
+
+class _Fine(NamedTuple):
+    T: Array
+    ok: bool
+    reason: str
+    fitness: float
+    rmse: float
+    n: int
+    information: float
+
+
+def _fine_stage(
+    src: Prepared,
+    tgt: Prepared,
+    T0: Array,
+    scales: tuple[IcpScale, ...],
+    colored: bool,
+    cfg: RegistrationConfig,
+    stages: dict[str, Any],
+    prefix: str,
+    limits: tuple[float, float, str],
+    init: Array | None,
+) -> _Fine:
+    """Multi-scale (colored or point-to-plane) ICP from ``T0`` and its acceptance checks."""
     try:
-        T, res, last = _icp(src, tgt, T0, scales, colored, cfg, stages)
+        T, res, last = _icp(src, tgt, T0, scales, colored, cfg, stages, prefix)
     except RuntimeError as e:  # Open3D refuses e.g. clouds without enough neighbours
-        return result(T0, False, f"fine stage failed: {_open3d_message(e)}")
+        return _Fine(T0, False, f"fine stage failed: {_open3d_message(e)}", 0.0, np.inf, 0, 0.0)
     corr = np.asarray(res.correspondence_set)
     fit, rmse, n = float(res.fitness), float(res.inlier_rmse), len(corr)
     src_fine = np.asarray(src.levels[last.voxel].points)
     c = src_fine.mean(axis=0)
     shift, rot = _centroid_motion(T, T0, c)
     stages["fine_shift_m"], stages["fine_rotation_deg"] = shift, rot
+    max_shift, max_rot, what = limits
+
+    def fail(reason: str, lam: float = 0.0) -> _Fine:
+        return _Fine(T, False, reason, fit, rmse, n, lam)
+
     if n < cfg.min_correspondences:
-        return result(
-            T,
-            False,
-            f"too few correspondences: {n} < {cfg.min_correspondences} (no overlap?)",
-            fit,
-            rmse,
-            n,
-        )
+        return fail(f"too few correspondences: {n} < {cfg.min_correspondences} (no overlap?)")
     if fit < cfg.min_fitness:
-        return result(
-            T,
-            False,
-            f"low fitness {fit:.3f} < {cfg.min_fitness} (little overlap or wrong pose)",
-            fit,
-            rmse,
-            n,
-        )
+        return fail(f"low fitness {fit:.3f} < {cfg.min_fitness} (little overlap or wrong pose)")
     if rmse > cfg.max_rmse:
-        return result(
-            T, False, f"inlier RMSE {rmse * 1e3:.2f} mm > {cfg.max_rmse * 1e3:.2f} mm", fit, rmse, n
-        )
+        return fail(f"inlier RMSE {rmse * 1e3:.2f} mm > {cfg.max_rmse * 1e3:.2f} mm")
     if shift > max_shift or rot > max_rot:
-        return result(
-            T,
-            False,
+        return fail(
             f"fine stage moved {shift * 1e3:.1f} mm / {rot:.2f} deg from the "
             f"{what} pose (limits {max_shift * 1e3:.0f} mm / {max_rot:.1f} deg): "
-            f"{what} pose rejected" + ("; register without init" if init is not None else ""),
-            fit,
-            rmse,
-            n,
+            f"{what} pose rejected" + ("; register without init" if init is not None else "")
         )
     t1 = time.perf_counter()
     lam_min, weak = _min_information(src, tgt, T, corr, last, colored, cfg)
-    stages["degeneracy_s"] = time.perf_counter() - t1
-    stages["min_information"] = lam_min
+    stages[f"{prefix}degeneracy_s"] = time.perf_counter() - t1
     if lam_min < cfg.min_information:
-        return result(
-            T,
-            False,
-            f"degenerate geometry: the {stages['method']} objective does not "
+        method = "colored_icp" if colored else "point_to_plane_icp"
+        return fail(
+            f"degenerate geometry: the {method} objective does not "
             f"constrain the direction {weak} (information {lam_min:.2e} < "
             f"{cfg.min_information:.1e}; a single plane without texture?)",
-            fit,
-            rmse,
-            n,
+            lam_min,
         )
-    return result(T, True, "", fit, rmse, n)
+    return _Fine(T, True, "", fit, rmse, n, lam_min)
 
 
 _DOF = ("rx", "ry", "rz", "x", "y", "z")
@@ -463,7 +513,7 @@ def _min_information(
     """Smallest eigenvalue (and its direction) of :func:`information_matrix` at ``T``."""
     if len(corr) > cfg.degeneracy_max_points:
         corr = corr[:: int(np.ceil(len(corr) / cfg.degeneracy_max_points))]
-    a, b = src.levels[sc.voxel], tgt.levels[sc.voxel]
+    a, b = src.levels[sc.voxel], tgt.with_normals(sc.voxel, cfg)
     s = np.asarray(a.points)[corr[:, 0]] @ T[:3, :3].T + T[:3, 3]
     n_t = np.asarray(b.normals)[corr[:, 1]]
     lam = cfg.lambda_geometric
