@@ -55,7 +55,8 @@ class RegistrationConfig(_Frozen):
     Coarse stage (Zhou et al. 2016, FGR)
         FPFH at ``coarse_voxel`` with radius ``fpfh_radius_factor * coarse_voxel``; FGR with
         ``fgr_distance_factor * coarse_voxel`` as its final correspondence distance,
-        ``fgr_iterations`` graduated non-convexity iterations, ``fgr_max_tuples`` tuples.
+        ``fgr_iterations`` iterations, ``fgr_max_tuples`` tuples whose edge lengths agree
+        within ``fgr_tuple_scale`` (Open3D's defaults).
     Fine stage (Park et al. 2017, colored ICP; point-to-plane ICP without color)
         ``scales`` from the coarse pose, ``init_scales`` when the caller gives ``init``;
         ``lambda_geometric`` weights the geometric against the photometric term (Park's 0.968).
@@ -79,7 +80,7 @@ class RegistrationConfig(_Frozen):
         smallest eigenvalue of the per-correspondence information matrix of the ICP objective
         at least ``min_information`` (degenerate geometry: a plane, a cylinder...), where color
         gradients smaller than ``min_color_gradient`` (intensity per m) count as no texture.
-    ``seed`` seeds Open3D's random draws (FGR tuples).
+    ``seed`` seeds the random draws (FGR tuples).
     """
 
     # preprocessing
@@ -98,6 +99,7 @@ class RegistrationConfig(_Frozen):
     fgr_distance_factor: float = Field(default=0.5, gt=0)
     fgr_iterations: int = Field(default=64, ge=1)
     fgr_max_tuples: int = Field(default=1000, ge=10)
+    fgr_tuple_scale: float = Field(default=0.95, gt=0, lt=1)
     # fine stage
     scales: tuple[IcpScale, ...] = Field(default=_COARSE_TO_FINE, min_length=1)
     init_scales: tuple[IcpScale, ...] = Field(default=_NEAR, min_length=1)

@@ -9,8 +9,10 @@ target). Stages:
    voxel-average at the finest ICP voxel, remove statistical outliers, build the voxel pyramid
    of the ICP schedule, estimate normals oriented to the camera, FPFH (Rusu 2009) at the coarse
    voxel (lazily, only when a global stage needs it).
-2. Coarse: Fast Global Registration (Zhou et al. 2016): mutual FPFH matches, tuple test, then
-   the scaled Geman-McClure objective ``sum rho(||q - T p||)`` by graduated non-convexity.
+2. Coarse: Fast Global Registration (Zhou et al. 2016): mutual FPFH matches and the tuple test
+   (:func:`fgr_correspondences`, vectorized: one matrix product instead of Open3D's k-d tree
+   in 33 dimensions, ~2x faster), then Open3D's scaled Geman-McClure objective
+   ``sum rho(||q - T p||)``.
 3. Fine: multi-scale colored ICP (Park et al. 2017). Per level it minimises
    ``E(T) = (1 - lambda) sum r_C^2 + lambda sum r_G^2`` with the geometric residual
    ``r_G = (T s - q) . n_q`` (point-to-plane) and the photometric residual
@@ -40,12 +42,20 @@ from typing import Any, NamedTuple
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
 
 from mmpa.errors import ConfigError, InvalidInputError
 from mmpa.geometry import Array
 from mmpa.registration.config import IcpScale, RegistrationConfig
 
-__all__ = ["Prepared", "Registration", "information_matrix", "prepare", "register"]
+__all__ = [
+    "Prepared",
+    "Registration",
+    "fgr_correspondences",
+    "information_matrix",
+    "prepare",
+    "register",
+]
 
 _reg = o3d.pipelines.registration
 _KD = o3d.geometry.KDTreeSearchParamHybrid
@@ -229,6 +239,68 @@ def _as_prepared(x: Any, cfg: RegistrationConfig, features: bool, name: str) -> 
     return prepare(x, cfg, features=features)
 
 
+def _feature_matrix(p: Prepared, f: o3d.pipelines.registration.Feature) -> Array:
+    """The FPFH descriptors of ``p`` as a float32 (N, 33) array (cached with the cloud)."""
+    if "fpfh_matrix" not in p._cache:
+        p._cache["fpfh_matrix"] = np.ascontiguousarray(np.asarray(f.data, np.float32).T)
+    return p._cache["fpfh_matrix"]
+
+
+def fgr_correspondences(
+    f_src: Array,
+    f_tgt: Array,
+    p_src: Array,
+    p_tgt: Array,
+    max_tuples: int,
+    tuple_scale: float,
+    rng: np.random.Generator,
+) -> Array:
+    """Correspondences of Fast Global Registration (Zhou et al. 2016, §3 "initial
+    correspondences" and the tuple test), vectorized.
+
+    ``f_src`` (N, d), ``f_tgt`` (M, d) descriptors of the points ``p_src`` (N, 3) and
+    ``p_tgt`` (M, 3). Mutual nearest neighbours in descriptor space, with the squared
+    distances ``|a_i|^2 - 2 a_i . b_j + |b_j|^2`` from one matrix product: pairs ``(i, j)``
+    with ``j = argmin_j' |a_i - b_j'|`` and ``i = argmin_i' |a_i' - b_j|``. Tuple test: of
+    up to ``100 K`` random triples of the ``K`` mutual pairs (drawn from ``rng``), keep those
+    whose three edge lengths agree, ``tuple_scale < l_tgt / l_src < 1 / tuple_scale`` for
+    every edge, until ``max_tuples`` triples pass. Returns the (3 T, 2) int32 index pairs
+    ``(source, target)`` of the ``T`` accepted triples (the input of Open3D's
+    ``registration_fgr_based_on_correspondence`` without its own tuple test).
+    """
+    a = np.asarray(f_src, np.float32)
+    b = np.asarray(f_tgt, np.float32)
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((0, 2), np.int32)
+    # row-wise argmins of contiguous matrices (a column-wise argmin is ~15x slower)
+    j_of_i = ((b * b).sum(axis=1)[None, :] - 2.0 * (a @ b.T)).argmin(axis=1)
+    i_of_j = ((a * a).sum(axis=1)[None, :] - 2.0 * (b @ a.T)).argmin(axis=1)
+    i = np.flatnonzero(i_of_j[j_of_i] == np.arange(len(a)))
+    pairs = np.stack([i, j_of_i[i]], axis=1)
+    k = len(pairs)
+    if k < 3:
+        return np.zeros((0, 2), np.int32)
+    ps, pt = np.asarray(p_src, float)[pairs[:, 0]], np.asarray(p_tgt, float)[pairs[:, 1]]
+    # edge lengths between all mutual pairs, flattened for the lookups
+    d_s = cdist(ps, ps).astype(np.float32).ravel()
+    d_t = cdist(pt, pt).astype(np.float32).ravel()
+    found: list[Array] = []
+    n_found, trials, batch = 0, 100 * k, 20000
+    for start in range(0, trials, batch):
+        r = rng.integers(0, k, (min(batch, trials - start), 3))
+        ok = np.ones(len(r), bool)
+        for e0, e1 in ((0, 1), (1, 2), (2, 0)):
+            e = r[:, e0] * k + r[:, e1]
+            ls, lt = d_s[e], d_t[e]
+            ok &= (ls * tuple_scale < lt) & (lt * tuple_scale < ls)
+        sel = r[ok][: max_tuples - n_found]
+        found.append(sel)
+        n_found += len(sel)
+        if n_found >= max_tuples:
+            break
+    return pairs[np.concatenate(found).reshape(-1)].astype(np.int32)
+
+
 def _centroid_motion(T_a: Array, T_b: Array, c: Array) -> tuple[float, float]:
     """Displacement (m) of point ``c`` and rotation angle (deg) between two poses."""
     d = float(np.linalg.norm((T_a[:3, :3] - T_b[:3, :3]) @ c + T_a[:3, 3] - T_b[:3, 3]))
@@ -375,14 +447,27 @@ def register(
         fs, ft = src.fpfh(cfg), tgt.fpfh(cfg)
         stages["features_s"] = time.perf_counter() - t1
         t1 = time.perf_counter()
-        o3d.utility.random.seed(cfg.seed)
+        corr = fgr_correspondences(
+            _feature_matrix(src, fs),
+            _feature_matrix(tgt, ft),
+            np.asarray(src.coarse.points),
+            np.asarray(tgt.coarse.points),
+            cfg.fgr_max_tuples,
+            cfg.fgr_tuple_scale,
+            np.random.default_rng(cfg.seed),
+        )
+        stages["matching_s"] = time.perf_counter() - t1
+        stages["fgr_correspondences"] = len(corr)
+        t1 = time.perf_counter()
         opt = _reg.FastGlobalRegistrationOption(
             maximum_correspondence_distance=cfg.fgr_distance_factor * cfg.coarse_voxel,
             iteration_number=cfg.fgr_iterations,
             maximum_tuple_count=cfg.fgr_max_tuples,
+            tuple_scale=cfg.fgr_tuple_scale,
+            tuple_test=False,  # done by fgr_correspondences
         )
-        coarse = _reg.registration_fgr_based_on_feature_matching(
-            src.coarse, tgt.coarse, fs, ft, opt
+        coarse = _reg.registration_fgr_based_on_correspondence(
+            src.coarse, tgt.coarse, o3d.utility.Vector2iVector(corr), opt
         )
         T0 = np.asarray(coarse.transformation).copy()
         stages["coarse_s"] = time.perf_counter() - t1
