@@ -140,6 +140,66 @@ def _empty(key: tuple, reason: str, stats: dict[str, Any]) -> Prepared:
     return Prepared({}, o3d.geometry.PointCloud(), False, reason, key, stats)
 
 
+def _clean_and_normals(pts: Array, voxel: float, cfg: RegistrationConfig) -> tuple[Array, Array]:
+    """Statistical outlier removal and normals from one k-nearest-neighbour search.
+
+    ``pts`` (N, 3) m, the voxel cloud. With ``d_ik`` the distance of point ``i`` to its
+    ``k``-th nearest neighbour (``k = 0`` is the point itself, as in Open3D's filter),
+    ``m_i = mean_{k < K} d_ik`` over ``K = outlier_neighbors``: point ``i`` is kept when
+    ``m_i <= mean(m) + outlier_std_ratio * std(m)``. The normal of a kept point is the
+    eigenvector of the smallest eigenvalue of the covariance of its kept neighbours among
+    the first ``normal_max_nn`` within ``normal_radius_factor * voxel`` (itself included),
+    oriented to the camera at the origin (``n . p < 0``); with fewer than 3 such neighbours,
+    the viewing direction ``-p / |p|``. Returns the keep mask (N,) and the normals (M, 3) of
+    the M kept points.
+    """
+    k_out, k_nrm = cfg.outlier_neighbors, cfg.normal_max_nn
+    d, nb = cKDTree(pts).query(pts, k=max(k_out, k_nrm), workers=-1)
+    m = d[:, :k_out].mean(axis=1)
+    keep = m <= m.mean() + cfg.outlier_std_ratio * m.std(ddof=1)
+    kept = np.flatnonzero(keep)
+    d, nb = d[kept, :k_nrm], nb[kept, :k_nrm]
+    w = (d <= cfg.normal_radius_factor * voxel) & keep[nb]
+    cnt = w.sum(axis=1)
+    x = pts[nb] * w[..., None]
+    mean = x.sum(axis=1) / np.maximum(cnt, 1)[:, None]
+    S = np.einsum("nki,nkj->nij", x, x) / np.maximum(cnt, 1)[:, None, None]
+    cov = S - mean[:, :, None] * mean[:, None, :]
+    n = _smallest_eigenvector(cov)
+    p = pts[kept]
+    weak = cnt < 3
+    n[weak] = -p[weak] / np.linalg.norm(p[weak], axis=1, keepdims=True)
+    n[np.einsum("ij,ij->i", n, p) > 0] *= -1.0
+    return keep, n
+
+
+def _smallest_eigenvector(C: Array) -> Array:
+    """Unit eigenvectors (N, 3) of the smallest eigenvalue of symmetric (N, 3, 3) matrices:
+    the eigenvalue in closed form (trigonometric solution of the characteristic cubic), the
+    vector as the largest cross product of two rows of ``C - lambda I``."""
+    q = np.trace(C, axis1=1, axis2=2) / 3.0
+    off = C[:, 0, 1] ** 2 + C[:, 0, 2] ** 2 + C[:, 1, 2] ** 2
+    diag = (C[:, 0, 0] - q) ** 2 + (C[:, 1, 1] - q) ** 2 + (C[:, 2, 2] - q) ** 2
+    p = np.sqrt((diag + 2.0 * off) / 6.0)
+    eye = np.eye(3)
+    B = (C - q[:, None, None] * eye) / np.where(p > 0, p, 1.0)[:, None, None]
+    r = np.clip(np.linalg.det(B) / 2.0, -1.0, 1.0)
+    lam = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)
+    M = C - lam[:, None, None] * eye
+    c = np.stack(
+        [np.cross(M[:, 0], M[:, 1]), np.cross(M[:, 0], M[:, 2]), np.cross(M[:, 1], M[:, 2])], 1
+    )
+    norms = np.linalg.norm(c, axis=2)
+    best = norms.argmax(axis=1)
+    v = c[np.arange(len(C)), best]
+    nv = norms[np.arange(len(C)), best]
+    out = np.zeros_like(v)
+    out[:, 2] = 1.0  # isotropic or empty neighbourhood: any direction
+    good = nv > 1e-30
+    out[good] = v[good] / nv[good, None]
+    return out
+
+
 def _normals(pc: o3d.geometry.PointCloud, voxel: float, cfg: RegistrationConfig) -> None:
     pc.estimate_normals(_KD(cfg.normal_radius_factor * voxel, cfg.normal_max_nn))
     pc.orient_normals_towards_camera_location(np.zeros(3))
@@ -204,8 +264,10 @@ def prepare(
         raw.colors = o3d.utility.Vector3dVector(cols)
     voxels = sorted({s.voxel for s in (*cfg.scales, *cfg.init_scales)})
     fine = raw.voxel_down_sample(voxels[0])
+    fine_normals = None
     if cfg.outlier_neighbors > 0 and len(fine.points) > cfg.outlier_neighbors + 1:
-        fine, _ = fine.remove_statistical_outlier(cfg.outlier_neighbors, cfg.outlier_std_ratio)
+        keep_v, fine_normals = _clean_and_normals(np.asarray(fine.points), voxels[0], cfg)
+        fine = fine.select_by_index(np.flatnonzero(keep_v))
     stats["n_fine"] = len(fine.points)
     if len(fine.points) < cfg.min_points:
         return _empty(
@@ -222,6 +284,9 @@ def prepare(
         coarse = fine.voxel_down_sample(cfg.coarse_voxel)
     stats["n_coarse"] = len(coarse.points)
     prep = Prepared(levels, coarse, colored, "", key, stats)
+    if fine_normals is not None:  # after the coarser levels: they get their own normals
+        fine.normals = o3d.utility.Vector3dVector(fine_normals)
+        prep._cache.setdefault("normals", set()).add(voxels[0])
     if features:
         prep.fpfh(cfg)
     stats["prepare_s"] = time.perf_counter() - t0
