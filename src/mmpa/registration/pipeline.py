@@ -46,6 +46,7 @@ from scipy.spatial.distance import cdist
 
 from mmpa.errors import ConfigError, InvalidInputError
 from mmpa.geometry import Array
+from mmpa.registration._blas import single_threaded_blas
 from mmpa.registration.config import IcpScale, RegistrationConfig
 
 __all__ = [
@@ -338,8 +339,9 @@ def fgr_correspondences(
     if len(a) == 0 or len(b) == 0:
         return np.zeros((0, 2), np.int32)
     # row-wise argmins of contiguous matrices (a column-wise argmin is ~15x slower)
-    j_of_i = ((b * b).sum(axis=1)[None, :] - 2.0 * (a @ b.T)).argmin(axis=1)
-    i_of_j = ((a * a).sum(axis=1)[None, :] - 2.0 * (b @ a.T)).argmin(axis=1)
+    with single_threaded_blas():
+        j_of_i = ((b * b).sum(axis=1)[None, :] - 2.0 * (a @ b.T)).argmin(axis=1)
+        i_of_j = ((a * a).sum(axis=1)[None, :] - 2.0 * (b @ a.T)).argmin(axis=1)
     i = np.flatnonzero(i_of_j[j_of_i] == np.arange(len(a)))
     pairs = np.stack([i, j_of_i[i]], axis=1)
     k = len(pairs)
