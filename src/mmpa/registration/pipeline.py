@@ -6,9 +6,10 @@ metres), estimate ``T = T_target_source`` such that ``p_t = T p_s`` (paper eq. 3
 target). Stages:
 
 1. ``prepare`` (once per cloud): crop ``z`` to ``[min_depth, max_depth]``, drop non-finite points,
-   voxel-average at the finest ICP voxel, remove statistical outliers, build the voxel pyramid
-   of the ICP schedule, estimate normals oriented to the camera, FPFH (Rusu 2009) at the coarse
-   voxel (lazily, only when a global stage needs it).
+   voxel-average at the finest ICP voxel, remove statistical outliers and estimate that level's
+   normals from one k-NN search, build the voxel pyramid of the ICP schedule; the normals of
+   the other levels (only the ICP target needs them) and FPFH (Rusu 2009) at the coarse voxel
+   are computed on first use and kept with the cloud (a taught cloud pays for them once).
 2. Coarse: Fast Global Registration (Zhou et al. 2016): mutual FPFH matches and the tuple test
    (:func:`fgr_correspondences`, vectorized: one matrix product instead of Open3D's k-d tree
    in 33 dimensions, ~2x faster), then Open3D's scaled Geman-McClure objective
@@ -19,7 +20,10 @@ target). Stages:
    ``r_C = C_q(f(T s)) - C(s)``, ``C_q`` the color of ``q`` extended linearly on its tangent
    plane by the gradient ``d_q`` and ``f`` the projection on that plane; lambda = 0.968.
    Without color (a cloud with constant color) it is point-to-plane ICP (paper Table A.7
-   Ex A.0/B.0, footnote 14).
+   Ex A.0/B.0, footnote 14). ``color_mode="auto"`` (default, beyond the paper) runs
+   point-to-plane ICP first and colored ICP only when geometry alone is weak (information
+   below ``geometric_min_information``) or rejected; ``"paper"`` always uses colored ICP when
+   both clouds carry color.
 4. Validation: the pose is returned with ``ok=False`` and a reason unless the clouds are large
    enough, the fine stage has enough inlier correspondences, fitness and RMSE pass, the fine
    pose stays near the coarse (or given) pose, and the objective constrains all six degrees of
