@@ -312,3 +312,32 @@ def test_fgr_correspondences_are_mutual_neighbours_passing_the_tuple_test() -> N
     # seeded: same draws, same tuples
     c2 = fgr_correspondences(f_src, f_tgt, p_src, p_tgt, 200, 0.95, np.random.default_rng(0))
     np.testing.assert_array_equal(c, c2)
+
+
+def test_outlier_filter_and_normals_match_open3d() -> None:
+    """The one-search statistical filter and normals against Open3D's own
+    ``remove_statistical_outlier`` and ``estimate_normals`` on a voxelized bench with
+    flying points."""
+    import open3d as o3d
+
+    from mmpa.registration.pipeline import _clean_and_normals
+
+    rng = np.random.default_rng(6)
+    pts = _scene(rng, 60000)
+    flying = rng.uniform([-0.3, -0.2, 0.5], [0.3, 0.2, 0.9], (300, 3))
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.r_[pts, flying]))
+    pc = pc.voxel_down_sample(0.01)
+    p = np.asarray(pc.points)
+    keep, n = _clean_and_normals(p, 0.01, CFG)
+    _, ind = pc.remove_statistical_outlier(CFG.outlier_neighbors, CFG.outlier_std_ratio)
+    ref_keep = np.zeros(len(p), bool)
+    ref_keep[ind] = True
+    assert np.mean(keep == ref_keep) > 0.998 and (~keep).sum() > 50
+    kept = pc.select_by_index(np.flatnonzero(keep))
+    kept.estimate_normals(
+        o3d.geometry.KDTreeSearchParamHybrid(CFG.normal_radius_factor * 0.01, CFG.normal_max_nn)
+    )
+    kept.orient_normals_towards_camera_location(np.zeros(3))
+    cos = np.einsum("ij,ij->i", n, np.asarray(kept.normals))
+    assert np.mean(cos > np.cos(np.deg2rad(2.0))) > 0.98
+    assert np.all(np.einsum("ij,ij->i", n, np.asarray(kept.points)) <= 0)  # face the camera

@@ -158,7 +158,7 @@ def _clean_and_normals(pts: Array, voxel: float, cfg: RegistrationConfig) -> tup
     the viewing direction ``-p / |p|``. Returns the keep mask (N,) and the normals (M, 3) of
     the M kept points.
     """
-    k_out, k_nrm = cfg.outlier_neighbors, cfg.normal_max_nn
+    k_out, k_nrm = min(cfg.outlier_neighbors, len(pts)), min(cfg.normal_max_nn, len(pts))
     # one worker: thread start-up and joins cost more than they save on ~6k points when
     # the machine is busy (measured 2x slower on 2 shared cores)
     d, nb = cKDTree(pts).query(pts, k=max(k_out, k_nrm))
