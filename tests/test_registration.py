@@ -341,3 +341,29 @@ def test_outlier_filter_and_normals_match_open3d() -> None:
     cos = np.einsum("ij,ij->i", n, np.asarray(kept.normals))
     assert np.mean(cos > np.cos(np.deg2rad(2.0))) > 0.98
     assert np.all(np.einsum("ij,ij->i", n, np.asarray(kept.points)) <= 0)  # face the camera
+
+
+def test_smallest_eigenvector_matches_eigh() -> None:
+    """The closed-form smallest eigenvector against LAPACK's on random covariances, including
+    nearly planar (rank-2) ones as on a surface, and a degenerate all-zero matrix."""
+    from mmpa.registration.pipeline import _smallest_eigenvector
+
+    rng = np.random.default_rng(8)
+    X = rng.normal(size=(500, 12, 3)) * np.array([0.01, 0.008, 0.0])  # planar neighbourhoods
+    X[250:] = rng.normal(size=(250, 12, 3)) * rng.uniform(0.001, 0.01, (250, 1, 3))
+    X[::7, :, 2] += rng.normal(0, 1e-5, (len(X[::7]), 12))  # noise off the plane
+    R = np.stack([rpy_to_R(*a) for a in rng.uniform(-np.pi, np.pi, (500, 3))])
+    X = np.einsum("nij,nkj->nki", R, X)
+    X -= X.mean(axis=1, keepdims=True)
+    C = np.einsum("nki,nkj->nij", X, X) / 12
+    v = _smallest_eigenvector(
+        C[:, 0, 0], C[:, 1, 1], C[:, 2, 2], C[:, 0, 1], C[:, 0, 2], C[:, 1, 2]
+    )
+    w, V = np.linalg.eigh(C)
+    ok = w[:, 1] - w[:, 0] > 1e-3 * w[:, 2]  # a well-defined smallest direction
+    assert ok.sum() > 400
+    cos = np.abs(np.einsum("ni,ni->n", v, V[:, :, 0]))
+    assert np.all(cos[ok] > 1 - 1e-6)
+    np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, atol=1e-12)
+    z = np.zeros(1)
+    np.testing.assert_array_equal(_smallest_eigenvector(z, z, z, z, z, z), [[0.0, 0.0, 1.0]])

@@ -166,40 +166,55 @@ def _clean_and_normals(pts: Array, voxel: float, cfg: RegistrationConfig) -> tup
     keep = m <= m.mean() + cfg.outlier_std_ratio * m.std(ddof=1)
     kept = np.flatnonzero(keep)
     d, nb = d[kept, :k_nrm], nb[kept, :k_nrm]
-    w = (d <= cfg.normal_radius_factor * voxel) & keep[nb]
+    w = ((d <= cfg.normal_radius_factor * voxel) & keep[nb]).astype(float)
     cnt = w.sum(axis=1)
-    x = pts[nb] * w[..., None]
-    mean = x.sum(axis=1) / np.maximum(cnt, 1)[:, None]
-    S = np.einsum("nki,nkj->nij", x, x) / np.maximum(cnt, 1)[:, None, None]
-    cov = S - mean[:, :, None] * mean[:, None, :]
-    n = _smallest_eigenvector(cov)
+    inv = 1.0 / np.maximum(cnt, 1.0)
     p = pts[kept]
+    # neighbour offsets from the point itself (better conditioned than raw coordinates)
+    x = (pts[nb] - p[:, None, :]) * w[..., None]
+    mx, my, mz = (x[..., i].sum(axis=1) * inv for i in range(3))
+    xx, yy, zz = x[..., 0], x[..., 1], x[..., 2]
+
+    def cov(a: Array, b: Array, ma: Array, mb: Array) -> Array:
+        return np.einsum("nk,nk->n", a, b) * inv - ma * mb
+
+    n = _smallest_eigenvector(
+        cov(xx, xx, mx, mx),
+        cov(yy, yy, my, my),
+        cov(zz, zz, mz, mz),
+        cov(xx, yy, mx, my),
+        cov(xx, zz, mx, mz),
+        cov(yy, zz, my, mz),
+    )
     weak = cnt < 3
     n[weak] = -p[weak] / np.linalg.norm(p[weak], axis=1, keepdims=True)
     n[np.einsum("ij,ij->i", n, p) > 0] *= -1.0
     return keep, n
 
 
-def _smallest_eigenvector(C: Array) -> Array:
-    """Unit eigenvectors (N, 3) of the smallest eigenvalue of symmetric (N, 3, 3) matrices:
-    the eigenvalue in closed form (trigonometric solution of the characteristic cubic), the
-    vector as the largest cross product of two rows of ``C - lambda I``."""
-    q = np.trace(C, axis1=1, axis2=2) / 3.0
-    off = C[:, 0, 1] ** 2 + C[:, 0, 2] ** 2 + C[:, 1, 2] ** 2
-    diag = (C[:, 0, 0] - q) ** 2 + (C[:, 1, 1] - q) ** 2 + (C[:, 2, 2] - q) ** 2
-    p = np.sqrt((diag + 2.0 * off) / 6.0)
-    eye = np.eye(3)
-    B = (C - q[:, None, None] * eye) / np.where(p > 0, p, 1.0)[:, None, None]
-    r = np.clip(np.linalg.det(B) / 2.0, -1.0, 1.0)
+def _smallest_eigenvector(
+    c00: Array, c11: Array, c22: Array, c01: Array, c02: Array, c12: Array
+) -> Array:
+    """Unit eigenvectors (N, 3) of the smallest eigenvalue of the symmetric 3x3 matrices with
+    entries ``c_ij`` (N,): the eigenvalue in closed form (trigonometric solution of the
+    characteristic cubic), the vector as the largest cross product of two rows of
+    ``C - lambda I``."""
+    q = (c00 + c11 + c22) / 3.0
+    a, b, c = c00 - q, c11 - q, c22 - q
+    p = np.sqrt((a * a + b * b + c * c + 2.0 * (c01 * c01 + c02 * c02 + c12 * c12)) / 6.0)
+    s = 1.0 / np.where(p > 0, p, 1.0)
+    a, b, c, d, e, f = a * s, b * s, c * s, c01 * s, c02 * s, c12 * s
+    det = a * (b * c - f * f) - d * (d * c - f * e) + e * (d * f - b * e)  # det(C - qI) / p^3
+    r = np.clip(det / 2.0, -1.0, 1.0)
     lam = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)
-    M = C - lam[:, None, None] * eye
-    c = np.stack(
-        [np.cross(M[:, 0], M[:, 1]), np.cross(M[:, 0], M[:, 2]), np.cross(M[:, 1], M[:, 2])], 1
-    )
-    norms = np.linalg.norm(c, axis=2)
+    r0 = np.stack([c00 - lam, c01, c02], axis=1)
+    r1 = np.stack([c01, c11 - lam, c12], axis=1)
+    r2 = np.stack([c02, c12, c22 - lam], axis=1)
+    cands = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)
+    norms = np.einsum("nci,nci->nc", cands, cands)
     best = norms.argmax(axis=1)
-    v = c[np.arange(len(C)), best]
-    nv = norms[np.arange(len(C)), best]
+    rows = np.arange(len(q))
+    v, nv = cands[rows, best], np.sqrt(norms[rows, best])
     out = np.zeros_like(v)
     out[:, 2] = 1.0  # isotropic or empty neighbourhood: any direction
     good = nv > 1e-30
