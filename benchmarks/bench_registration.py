@@ -14,14 +14,20 @@ the raw ``PointCloud`` (conversion included): voxel 2 cm, normals (r 4 cm, 30 nn
 
 Ours:
   (a) cold: ``register(PointCloud, PointCloud)`` (both clouds prepared inside);
-  (b) IPE first iteration: taught cloud ``prepare``-d once (as IPE does), current raw;
+  (b) IPE first iteration: taught cloud ``prepare``-d once (as IPE does: X_i(O) is fixed per
+      task), current raw, global stage (the IPE's path without a localization prior);
   (c) IPE later iterations: current capture 1-3 mm / 0.1-0.3 deg from the taught viewpoint,
       ``init=I`` (global stage skipped);
-  (d) IPE compute estimate: ``prepare(taught) + (b) + 3 (c)`` (registration only; IK and the
-      pose update are microseconds);
-  (e) IPE after convergence: (c) then the projective point-to-plane refinement on the current
-      depth image (``refine_projective``, full resolution, depth scale estimated).
-Prints mean E_t (mm), E_R (paper eq. 12-13), median seconds and speedup ratios. Exits 0.
+  (d) (c) then the projective point-to-plane refinement on the current depth image
+      (``refine_projective``, full resolution, depth scale estimated): the IPE's compute per
+      view after the first;
+  (e) IPE compute estimate: (b) + its projective refinement + (d) (two views, as the IPE
+      experiment converges); the real loop is timed by ``mmpa experiment ipe`` (compute_s).
+Every timed call is repeated ``--repeat`` times, interleaved with the reference on the same
+pair, and the fastest kept (wall and CPU seconds, both pipelines alike): on a shared machine
+the best of a few calls is the least disturbed. Prints mean/max E_t (mm), E_R (paper eq.
+12-13), median seconds, speedup ratios (wall, and CPU time of all threads) and one VERDICT
+line per case against the issue's target (>= 5x at equal or better accuracy). Exits 0.
 """
 
 from __future__ import annotations
@@ -120,21 +126,47 @@ def timed(f: Callable[[], Array]) -> tuple[Array, float]:
     return T, time.perf_counter() - t0
 
 
+def best_of(f: Callable[[], object], repeat: int) -> tuple[object, float, float]:
+    """``f()``'s result and the smallest wall and CPU (all threads) seconds of ``repeat``
+    calls (the least disturbed by other processes)."""
+    out, wall, cpu = None, np.inf, np.inf
+    for _ in range(repeat):
+        w0, c0 = time.perf_counter(), time.process_time()
+        out = f()
+        wall = min(wall, time.perf_counter() - w0)
+        cpu = min(cpu, time.process_time() - c0)
+    return out, wall, cpu
+
+
 def errs(T_true: Array, T: Array) -> tuple[float, float]:
     return translation_error(T_true, T) * 1e3, rotation_error(T_true, T)
+
+
+#: (case, label, reference case)
+CASES = (
+    ("reference", "Open3D documented (parking pairs)", "reference"),
+    ("cold", "ours, both raw", "reference"),
+    ("ipe_first", "ours, taught prepared (IPE k=1)", "reference"),
+    ("ref_near", "Open3D documented (near pairs)", "ref_near"),
+    ("ipe_init", "ours, init=I (IPE k>=2)", "ref_near"),
+    ("ipe_proj", "ours, init=I + projective", "ref_near"),
+)
+TARGET = 5.0
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", type=int, default=8)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--repeat", type=int, default=3, help="timed calls per pair (best kept)")
     ap.add_argument("--set", action="append", default=[], help="RegistrationConfig key=value")
     a = ap.parse_args()
     over = {k: json.loads(v) for k, v in (s.split("=", 1) for s in a.set)}
     cfg = RegistrationConfig(**over)
     print(
         f"mmpa registration benchmark  {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} cpus, open3d {o3d.__version__}, config overrides {over}"
+        f"{os.cpu_count()} cpus, open3d {o3d.__version__}, config overrides {over}, "
+        f"best of {a.repeat} calls per pair, load average {os.getloadavg()[0]:.2f}"
     )
     taught, far = make_pairs(a.pairs, a.seed, near=False)
     FRAMES.clear()
@@ -143,9 +175,8 @@ def main() -> None:
     open3d_reference(taught, far[0][0])  # warm up Open3D
     register(taught, far[0][0], cfg)
 
-    rows: dict[str, list[tuple[float, float, float, bool]]] = {
-        k: [] for k in ("reference", "cold", "ipe_first", "ref_near", "ipe_init", "ipe_proj")
-    }
+    # case -> per pair (E_t mm, E_R, wall s, cpu s, ok)
+    rows: dict[str, list[tuple[float, float, float, float, bool]]] = {c[0]: [] for c in CASES}
     t_prep = []
     shifts: list[tuple[float, float]] = []
     stage_t: dict[str, dict[str, list[float]]] = {"ipe_first": {}, "ipe_init": {}}
@@ -155,59 +186,67 @@ def main() -> None:
             if k.endswith("_s"):
                 stage_t[case].setdefault(k, []).append(v)
 
+    def run(case: str, f: Callable[[], object], T_true: Array) -> object:
+        out, wall, cpu = best_of(f, a.repeat)
+        T, ok = (out, True) if isinstance(out, np.ndarray) else (out.T, out.ok)
+        rows[case].append((*errs(T_true, T), wall, cpu, ok))
+        if not ok:
+            print(f"  {case} failed: {out.reason}")
+        return out
+
     for cur, T_true in far:
-        T, s = timed(lambda cur=cur: open3d_reference(taught, cur, cfg.seed))
-        rows["reference"].append((*errs(T_true, T), s, True))
-        r = register(taught, cur, cfg)
-        rows["cold"].append((*errs(T_true, r.T), r.seconds, r.ok))
-        t0 = time.perf_counter()
-        P = prepare(taught, cfg)
-        t_prep.append(time.perf_counter() - t0)
-        r = register(P, cur, cfg)
-        rows["ipe_first"].append((*errs(T_true, r.T), r.seconds, r.ok))
+        run("reference", lambda cur=cur: open3d_reference(taught, cur, cfg.seed), T_true)
+        run("cold", lambda cur=cur: register(taught, cur, cfg), T_true)
+        P, wall, _ = best_of(lambda: prepare(taught, cfg), a.repeat)
+        t_prep.append(wall)
+        r = run("ipe_first", lambda cur=cur, P=P: register(P, cur, cfg), T_true)
         keep_stages("ipe_first", r.stages)
         shifts.append(
             (r.stages.get("fine_shift_m", np.nan), r.stages.get("fine_rotation_deg", np.nan))
         )
-        if not r.ok:
-            print("  failed:", r.reason)
     P = prepare(taught, cfg)
+    t_proj = []
     for (cur, T_true), fr in zip(near, near_frames, strict=True):
-        T, s = timed(lambda cur=cur: open3d_reference(taught, cur, cfg.seed))
-        rows["ref_near"].append((*errs(T_true, T), s, True))
-        r = register(P, cur, cfg, init=np.eye(4))
-        rows["ipe_init"].append((*errs(T_true, r.T), r.seconds, r.ok))
-        pr = refine_projective(taught.points, fr.depth, fr.intrinsics, r.T)
-        rows["ipe_proj"].append((*errs(T_true, pr.T), r.seconds + pr.seconds, pr.ok))
+        run("ref_near", lambda cur=cur: open3d_reference(taught, cur, cfg.seed), T_true)
+        r = run("ipe_init", lambda cur=cur: register(P, cur, cfg, init=np.eye(4)), T_true)
         keep_stages("ipe_init", r.stages)
-        if not r.ok:
-            print("  failed:", r.reason)
 
-    def summary(k: str) -> tuple[float, float, float, float, float]:
+        def both(cur=cur, fr=fr):  # the IPE's per-view compute: registration + projective
+            r = register(P, cur, cfg, init=np.eye(4))
+            return refine_projective(taught.points, fr.depth, fr.intrinsics, r.T)
+
+        pr = run("ipe_proj", both, T_true)
+        t_proj.append(pr.seconds)
+
+    def summary(k: str) -> dict[str, float]:
         x = np.array(rows[k], float)
-        return x[:, 0].mean(), x[:, 0].max(), x[:, 1].mean(), np.median(x[:, 2]), x[:, 3].mean()
+        return {
+            "E_t": x[:, 0].mean(),
+            "E_t_max": x[:, 0].max(),
+            "E_R": x[:, 1].mean(),
+            "E_R_max": x[:, 1].max(),
+            "wall": float(np.median(x[:, 2])),
+            "cpu": float(np.median(x[:, 3])),
+            "ok": x[:, 4].mean(),
+        }
 
+    S = {k: summary(k) for k, _, _ in CASES}
     print(
-        f"\n{'case':<34}{'E_t mean':>9}{'E_t max':>9}{'E_R mean':>10}{'median s':>10}"
-        f"{'ok':>6}{'speedup':>9}"
+        f"\n{'case':<34}{'E_t mean':>9}{'E_t max':>9}{'E_R mean':>10}{'E_R max':>9}"
+        f"{'median s':>10}{'ok':>6}{'speedup':>9}{'CPU x':>7}"
     )
-    ref_s = summary("reference")[3]
-    ref_near_s = summary("ref_near")[3]
-    labels = {
-        "reference": ("Open3D documented (parking pairs)", ref_s),
-        "cold": ("ours, both raw", ref_s),
-        "ipe_first": ("ours, taught prepared (IPE k=1)", ref_s),
-        "ref_near": ("Open3D documented (near pairs)", ref_near_s),
-        "ipe_init": ("ours, init=I (IPE k>=2)", ref_near_s),
-        "ipe_proj": ("ours, init=I + projective", ref_near_s),
-    }
-    for k, (label, base) in labels.items():
-        et, etmax, er, s, ok = summary(k)
-        print(f"{label:<34}{et:9.3f}{etmax:9.3f}{er:10.5f}{s:10.4f}{ok:6.2f}{base / s:9.2f}")
-    ipe = np.median(t_prep) + summary("ipe_first")[3] + 3 * summary("ipe_init")[3]
+    for k, label, base in CASES:
+        x, b = S[k], S[base]
+        print(
+            f"{label:<34}{x['E_t']:9.3f}{x['E_t_max']:9.3f}{x['E_R']:10.5f}{x['E_R_max']:9.5f}"
+            f"{x['wall']:10.4f}{x['ok']:6.2f}{b['wall'] / x['wall']:9.2f}{b['cpu'] / x['cpu']:7.2f}"
+        )
+    ipe = S["ipe_first"]["wall"] + float(np.median(t_proj)) + S["ipe_proj"]["wall"]
     print(
-        f"\nprepare(taught) median {np.median(t_prep):.4f} s; IPE registration compute "
-        f"estimate (prepare + k=1 + 3 x init) {ipe:.3f} s (target <= 0.5 s)"
+        f"\nprepare(taught) median {np.median(t_prep):.4f} s (once per task); IPE compute "
+        f"estimate without a localization prior, 2 views as in `mmpa experiment ipe` "
+        f"(global k=1 + projective, then init + projective) {ipe:.3f} s (target <= 0.5 s; "
+        f"the experiment measures the real loop: compute_s)"
     )
     sh = np.array(shifts)
     print(
@@ -220,7 +259,26 @@ def main() -> None:
             f"stages {case} (median ms): "
             + ", ".join(f"{k[:-2]} {1e3 * np.median(v):.1f}" for k, v in st.items())
         )
-    print("targets: speedup >= 5 at equal or better accuracy (E_t mm, E_R against the truth)")
+    print(
+        f"\ntarget: speedup >= {TARGET:g}x over Open3D's documented pipeline, same pairs, same "
+        "run, at equal or better accuracy (mean E_t and mean E_R against the truth); the IPE "
+        "registers a taught cloud prepared once per task (IPE k=1, k>=2 rows), 'both raw' "
+        "prepares both clouds inside every call; 'info': the IPE's whole per-view compute"
+    )
+    for k, label, base in CASES:
+        if k == base:
+            continue
+        x, b = S[k], S[base]
+        ratio = b["wall"] / x["wall"]
+        acc = x["E_t"] <= b["E_t"] and x["E_R"] <= b["E_R"] and x["ok"] == 1.0
+        verdict = "PASS" if ratio >= TARGET and acc else "FAIL"
+        if k == "ipe_proj":  # registration + a refinement Open3D's pipeline does not do
+            verdict = "info"
+        print(
+            f"VERDICT {verdict}  {label}: {ratio:.2f}x wall (CPU {b['cpu'] / x['cpu']:.2f}x) vs "
+            f"{TARGET:g}x; E_t {x['E_t']:.3f} vs {b['E_t']:.3f} mm, E_R {x['E_R']:.5f} vs "
+            f"{b['E_R']:.5f}: accuracy {'equal or better' if acc else 'WORSE'}"
+        )
 
 
 if __name__ == "__main__":

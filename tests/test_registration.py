@@ -15,7 +15,7 @@ from mmpa.registration import (
     prepare,
     register,
 )
-from mmpa.registration.pipeline import _color_gradients
+from mmpa.registration.pipeline import _color_gradients, fgr_correspondences
 from mmpa.robot.interfaces import PointCloud
 
 CFG = RegistrationConfig(presample=1)
@@ -86,14 +86,26 @@ def _check(r: Registration, T: np.ndarray, et: float = 1.5e-3, er: float = 0.004
 
 def test_recovers_known_transform_colored() -> None:
     src, tgt = _pair(T_TRUE)
-    r = register(src, tgt, CFG)
+    paper = CFG.model_copy(update={"color_mode": "paper"})
+    r = register(src, tgt, paper)
     _check(r, T_TRUE)
     assert r.stages["method"] == "colored_icp"
     assert r.fitness > 0.8 and r.rmse < 5e-3 and r.n_correspondences > 1000
     assert r.reason == "" and r.seconds > 0
     # p_target = T p_source: the inverse problem gives the inverse transform
-    r2 = register(tgt, src, CFG)
+    r2 = register(tgt, src, paper)
     _check(r2, inv(T_TRUE))
+
+
+def test_auto_uses_geometry_when_it_constrains_the_pose() -> None:
+    """``auto``: the bench's geometry pins all six directions, so point-to-plane ICP alone,
+    without the photometric term (and without estimating the source's normals)."""
+    src, tgt = _pair(T_TRUE)
+    r = register(src, tgt, CFG)
+    _check(r, T_TRUE)
+    assert r.stages["method"] == "point_to_plane_icp"
+    assert r.stages["min_information"] >= CFG.geometric_min_information
+    assert "colored_icp0_s" not in r.stages
 
 
 def test_geometric_icp_without_color() -> None:
@@ -127,6 +139,10 @@ def test_pure_color_plane_is_refused_textured_plane_is_not() -> None:
     r = register(src, tgt, CFG, init=np.eye(4))
     _check(r, T, et=2e-3)
     assert r.stages["min_information"] >= CFG.min_information
+    # auto: point-to-plane first, found degenerate, then colored ICP
+    assert r.stages["method"] == "colored_icp" and "colored_icp0_s" in r.stages
+    assert "degenerate" in r.stages["geometric_reason"]
+    assert r.stages["geometric_information"] < CFG.min_information
     # ... but not by geometry alone
     geo = CFG.model_copy(update={"color_mode": "geometric"})
     r = register(src, tgt, geo, init=np.eye(4))
@@ -264,3 +280,90 @@ def test_config_scales_and_voxels() -> None:
     assert sorted(p.levels) == [0.015, 0.03]
     spacing = np.asarray(p.levels[0.015].points)
     assert 500 < len(spacing) < 20000
+
+
+def test_fgr_correspondences_are_mutual_neighbours_passing_the_tuple_test() -> None:
+    """Against a brute-force computation: every returned pair is a mutual nearest neighbour in
+    descriptor space (k-d tree, float64), every triple passes the edge-length test, and on a
+    rigid copy with noisy descriptors most pairs are true matches."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(4)
+    n = 400
+    p_src = rng.uniform(-0.3, 0.3, (n, 3))
+    T = make_T(rpy_to_R(0.1, -0.05, 0.3), [0.05, -0.02, 0.01])
+    perm = rng.permutation(n)
+    p_tgt = (p_src @ T[:3, :3].T + T[:3, 3])[perm]
+    f_src = rng.uniform(0, 10, (n, 33))
+    f_tgt = f_src[perm] + rng.normal(0, 0.5, (n, 33))
+    f_tgt[:40] = rng.uniform(0, 10, (40, 33))  # 10 % of the targets match nothing
+    c = fgr_correspondences(f_src, f_tgt, p_src, p_tgt, 200, 0.95, np.random.default_rng(0))
+    assert c.shape[1] == 2 and len(c) % 3 == 0 and 0 < len(c) <= 600
+    j_of_i = cKDTree(f_tgt).query(f_src)[1]
+    i_of_j = cKDTree(f_src).query(f_tgt)[1]
+    assert np.all(j_of_i[c[:, 0]] == c[:, 1]) and np.all(i_of_j[c[:, 1]] == c[:, 0])
+    for t in c.reshape(-1, 3, 2):
+        for e0, e1 in ((0, 1), (1, 2), (2, 0)):
+            ls = np.linalg.norm(p_src[t[e0, 0]] - p_src[t[e1, 0]])
+            lt = np.linalg.norm(p_tgt[t[e0, 1]] - p_tgt[t[e1, 1]])
+            assert 0.95 * ls < lt < ls / 0.95
+    true = perm[c[:, 1]] == c[:, 0]
+    assert true.mean() > 0.95
+    # seeded: same draws, same tuples
+    c2 = fgr_correspondences(f_src, f_tgt, p_src, p_tgt, 200, 0.95, np.random.default_rng(0))
+    np.testing.assert_array_equal(c, c2)
+
+
+def test_outlier_filter_and_normals_match_open3d() -> None:
+    """The one-search statistical filter and normals against Open3D's own
+    ``remove_statistical_outlier`` and ``estimate_normals`` on a voxelized bench with
+    flying points."""
+    import open3d as o3d
+
+    from mmpa.registration.pipeline import _clean_and_normals
+
+    rng = np.random.default_rng(6)
+    pts = _scene(rng, 60000)
+    flying = rng.uniform([-0.3, -0.2, 0.5], [0.3, 0.2, 0.9], (300, 3))
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.r_[pts, flying]))
+    pc = pc.voxel_down_sample(0.01)
+    p = np.asarray(pc.points)
+    keep, n = _clean_and_normals(p, 0.01, CFG)
+    _, ind = pc.remove_statistical_outlier(CFG.outlier_neighbors, CFG.outlier_std_ratio)
+    ref_keep = np.zeros(len(p), bool)
+    ref_keep[ind] = True
+    assert np.mean(keep == ref_keep) > 0.998 and (~keep).sum() > 50
+    kept = pc.select_by_index(np.flatnonzero(keep))
+    kept.estimate_normals(
+        o3d.geometry.KDTreeSearchParamHybrid(CFG.normal_radius_factor * 0.01, CFG.normal_max_nn)
+    )
+    kept.orient_normals_towards_camera_location(np.zeros(3))
+    cos = np.einsum("ij,ij->i", n, np.asarray(kept.normals))
+    assert np.mean(cos > np.cos(np.deg2rad(2.0))) > 0.98
+    assert np.all(np.einsum("ij,ij->i", n, np.asarray(kept.points)) <= 0)  # face the camera
+
+
+def test_smallest_eigenvector_matches_eigh() -> None:
+    """The closed-form smallest eigenvector against LAPACK's on random covariances, including
+    nearly planar (rank-2) ones as on a surface, and a degenerate all-zero matrix."""
+    from mmpa.registration.pipeline import _smallest_eigenvector
+
+    rng = np.random.default_rng(8)
+    X = rng.normal(size=(500, 12, 3)) * np.array([0.01, 0.008, 0.0])  # planar neighbourhoods
+    X[250:] = rng.normal(size=(250, 12, 3)) * rng.uniform(0.001, 0.01, (250, 1, 3))
+    X[::7, :, 2] += rng.normal(0, 1e-5, (len(X[::7]), 12))  # noise off the plane
+    R = np.stack([rpy_to_R(*a) for a in rng.uniform(-np.pi, np.pi, (500, 3))])
+    X = np.einsum("nij,nkj->nki", R, X)
+    X -= X.mean(axis=1, keepdims=True)
+    C = np.einsum("nki,nkj->nij", X, X) / 12
+    v = _smallest_eigenvector(
+        C[:, 0, 0], C[:, 1, 1], C[:, 2, 2], C[:, 0, 1], C[:, 0, 2], C[:, 1, 2]
+    )
+    w, V = np.linalg.eigh(C)
+    ok = w[:, 1] - w[:, 0] > 1e-3 * w[:, 2]  # a well-defined smallest direction
+    assert ok.sum() > 400
+    cos = np.abs(np.einsum("ni,ni->n", v, V[:, :, 0]))
+    assert np.all(cos[ok] > 1 - 1e-6)
+    np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, atol=1e-12)
+    z = np.zeros(1)
+    np.testing.assert_array_equal(_smallest_eigenvector(z, z, z, z, z, z), [[0.0, 0.0, 1.0]])

@@ -144,3 +144,21 @@ def test_bad_input_raises(pair):
         refine_projective(src, tgt[:10], K, np.eye(4))
     with pytest.raises(InvalidInputError):
         refine_projective(src, tgt, K, np.full((4, 4), np.nan))
+
+
+def test_single_threaded_blas_is_local_and_restored() -> None:
+    """Inside the block the calling thread's OpenBLAS uses one thread; afterwards the previous
+    setting is back (checked through the setter's return value, the previous setting)."""
+    from mmpa.registration._blas import _set_local, single_threaded_blas
+
+    f = _set_local()
+    assert f is not None, "numpy's bundled OpenBLAS was not found"
+    before = f(3)  # make the current setting known: 3
+    try:
+        with single_threaded_blas():
+            assert f(1) == 1
+            a = np.arange(12.0).reshape(3, 4)
+            np.testing.assert_allclose(a @ a.T, np.einsum("ik,jk->ij", a, a))
+        assert f(3) == 3
+    finally:
+        f(before)

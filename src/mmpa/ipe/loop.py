@@ -245,6 +245,7 @@ class IPE:
             except UnreachableError:
                 prior = None  # the taught joints, as in the paper
         retreated = False
+        src_points: Array | None = None
         for k in range(1, cfg.beta + 1):
             if progress:
                 progress(f"IPE iteration {k}", (k - 1) / cfg.beta)
@@ -284,8 +285,10 @@ class IPE:
             pr = None
             dT_C = reg.T
             if reg.ok and cfg.projective is not None and isinstance(taught, PointCloud):
+                if src_points is None:  # cropped once per run
+                    src_points = _source_points(taught, cfg)
                 pr = refine_projective(
-                    _source_points(taught, cfg),
+                    src_points,
                     frame.depth,
                     frame.intrinsics,
                     reg.T,
