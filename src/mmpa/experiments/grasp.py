@@ -203,11 +203,13 @@ def grasp_trial(
 class _Probe:
     """Evaluation only (truth): the gripper-object geometry when the gripper starts to close
     (in the tool frame: ``close_dx`` along the pads, ``close_dy`` along the closing fingers,
-    ``close_dz`` object center minus TCP height), the first touch of the gripper on the object
+    ``close_dz`` object center minus TCP height; large when the gripper closed on something
+    else: ``close_on`` names the desk object nearest the TCP then, ``target_on_desk`` says
+    whether the target was still on the desk), the first touch of the gripper on the object
     before that (``touched_before_close``: the object was knocked) and a failure class."""
 
     def __init__(self, world: Any, name: str) -> None:
-        from mmpa.perception.dataset import _footprint
+        from mmpa.perception.dataset import _footprint, desk_frame, desk_object_names
 
         self.world, self.name = world, name
         m = world.model
@@ -216,9 +218,13 @@ class _Probe:
             m.geom(g).id for g in ("finger_left_pad", "finger_right_pad", "gripper_palm")
         }
         self.radius = _footprint(world, name)[0]
+        self.desk_objects = desk_object_names(world)
+        _, self.desk_top, _ = desk_frame(world)
         self.closing = False
         self.touch_before: str = ""
         self.close: dict[str, float] = {}
+        self.close_on = ""
+        self.target_on_desk = True
 
     def check(self) -> None:
         if self.closing or self.touch_before:
@@ -234,9 +240,18 @@ class _Probe:
 
     def at_close(self) -> None:
         self.closing = True
-        T_tcp = self.world.truth.T_map_tcp()
-        d = T_tcp[:3, :3].T @ (self.world.truth.T_map_object(self.name)[:3, 3] - T_tcp[:3, 3])
+        truth = self.world.truth
+        T_tcp = truth.T_map_tcp()
+        p_obj = truth.T_map_object(self.name)[:3, 3]
+        d = T_tcp[:3, :3].T @ (p_obj - T_tcp[:3, 3])
         self.close = {"close_dx": float(d[0]), "close_dy": float(d[1]), "close_dz": float(-d[2])}
+        self.target_on_desk = bool(p_obj[2] > self.desk_top)
+        dist = {
+            n: float(np.linalg.norm(truth.T_map_object(n)[:2, 3] - T_tcp[:2, 3]))
+            for n in self.desk_objects
+        }
+        near = min(dist, key=dist.__getitem__)
+        self.close_on = near if dist[near] < 0.08 else ""
 
     def row(self) -> dict[str, Any]:
         nan = float("nan")
@@ -244,18 +259,28 @@ class _Probe:
             "close_dx": self.close.get("close_dx", nan),
             "close_dy": self.close.get("close_dy", nan),
             "close_dz": self.close.get("close_dz", nan),
+            "close_on": self.close_on,
+            "target_on_desk": self.target_on_desk,
             "touched_before_close": self.touch_before,
         }
 
     def failure(self, reason: str, res: Any) -> str:
         """Why a trial failed: not found / lost track (timeout while the object was out of
-        view for most ticks) / never aligned / unreachable / knocked (the gripper touched the
-        object before closing) / off-center (the object center outside the open fingers at the
-        close) / missed / dropped (held at the close, fell in the lift or hold)."""
+        view for most ticks) / never aligned / unreachable / target off the desk (knocked off
+        before the close) / wrong object (closed on another desk object, the target over
+        0.15 m away: the track had jumped to it) / knocked (the
+        gripper touched the object before closing) / off-center (the object center outside
+        the open fingers at the close) / missed / dropped (held at the close, fell in the lift
+        or hold)."""
         if reason in ("not found", "unreachable"):
             return reason
         if reason == "timeout":
             return "lost track" if res.lost_ticks > 0.3 * max(res.ticks, 1) else "never aligned"
+        if self.closing and not self.target_on_desk:
+            return "target off the desk"
+        far = float(np.hypot(self.close.get("close_dx", 0.0), self.close.get("close_dy", 0.0)))
+        if self.close_on and self.close_on != self.name and far > 0.15:
+            return f"wrong object ({self.close_on})"
         if self.touch_before:
             return f"knocked ({self.touch_before})"
         stroke = self.world.true_robot.gripper.stroke
