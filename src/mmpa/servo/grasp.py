@@ -83,10 +83,12 @@ class GraspConfig(BaseModel):
     reinit_score: float = Field(0.6, ge=0, le=1)
     descend_speed: float = Field(1.2, gt=0)  # m/s of the blind descent
     descend_rate_hz: float = Field(50.0, gt=0)  # set-points of the descent
-    # joint speed limit of the blind descent, a fraction of the arm's qd_max; 0.9 (0.3 s
-    # instead of 0.35 s from the 0.25 m standoff) gave no better tracking grasps at 0.2 m/s
-    # (11/20 both) and a 2 cm offset on a static ball (the arm lags its set-points)
+    # joint speed limit of the blind descent (a fraction of the arm's qd_max) for an object
+    # slower than ``final_standoff_max_speed`` and for a moving one: a moving object may
+    # turn while the TCP comes down (every miss traced at 0.2 m/s had a turn then), a static
+    # one is grasped more precisely slower (the arm lags its set-points: 2 cm off at 0.9)
     descend_joint_speed_fraction: float = Field(0.6, gt=0, le=1)
+    moving_descend_joint_speed_fraction: float = Field(0.9, gt=0, le=1)
     arm_lag: float = Field(0.03, ge=0)  # s, set-point to TCP (latency compensation)
     close_delay: float = Field(0.0, ge=0)  # s from the arrival to closing
     settle_tol: float = Field(0.006, gt=0)  # m: the TCP this near the grasp height = arrived
@@ -480,7 +482,15 @@ class TrackingGrasp:
         n = max(int(np.ceil(abs(z0 - zg) / cfg.descend_speed / dt)), 1)
         q_min, q_max = self.robot.arm.q_limits
         n_settle = int(np.ceil(cfg.settle_max / dt))
-        qd_descend = np.asarray(self.robot.arm.qd_max) * cfg.descend_joint_speed_fraction
+        moving = (
+            cfg.use_predictor
+            and kf.initialized
+            and float(np.linalg.norm(kf.velocity()[:2])) > cfg.final_standoff_max_speed
+        )
+        fraction = (
+            cfg.moving_descend_joint_speed_fraction if moving else cfg.descend_joint_speed_fraction
+        )
+        qd_descend = np.asarray(self.robot.arm.qd_max) * fraction
         q_ik = q_cmd  # the IK branch followed (the set-point may lag it at the speed limits)
         for k in range(1, n + 1 + n_settle):
             if k > n:  # arrived? (encoders, nominal kinematics): close as soon as it is there
