@@ -12,8 +12,9 @@ small (and, with the predictor, the object has moved predictably for ``steady_ti
 descends blind at ``descend_speed`` to the grasp height (:func:`mmpa.servo.target.
 grasp_height`), following the object's predicted position ``arm_lag`` ahead of each
 set-point; it closes as soon as the encoders say the TCP arrived, then lifts. When the object
-leaves the view the arm holds still and waits for it to reappear (the paper's behaviour); with
-the predictor it first keeps following the prediction for ``coast_time``; a weak detection
+leaves the view the arm waits for it to reappear (the paper's behaviour), backing up to the
+tracking standoff over where it was last seen (``reacquire``); with the predictor it first
+keeps following the prediction for ``coast_time``; a weak detection
 (score below ``reinit_score``) away from the track does not restart it. The base creeps
 forward when the object lies beyond ``reach_limit``. Every set-point is clipped to the joint
 limits and scaled to the joint speed limits before it is sent.
@@ -96,6 +97,9 @@ class GraspConfig(BaseModel):
     # s of following the prediction without detections (longer: the arm runs after a stale
     # prediction while the object turns, and looks at the wrong place)
     coast_time: float = Field(0.3, ge=0)
+    # lost (after coasting): back up to ``ibvs.standoff`` over the last measured position
+    # while waiting (False: hold still, the paper's behaviour)
+    reacquire: bool = True
     max_time: float = Field(25.0, gt=0)  # s
     lift: float = Field(0.12, gt=0)  # m
     pad_clearance: float = Field(0.024, gt=0)  # m, TCP above the desk at the lowest
@@ -340,6 +344,7 @@ class TrackingGrasp:
         yaw = None
         aligned = 0
         standoff = cfg.ibvs.standoff
+        lost_close = False
         ticks = lost = 0
         first = None
         innovations: list[float] = []
@@ -381,11 +386,21 @@ class TrackingGrasp:
                 innovations.append(float("inf"))
             coasting = cfg.use_predictor and kf.initialized and now - last_seen < cfg.coast_time
             if meas is None and not coasting:
-                # paper: stop and wait for the object to reappear
+                # paper: stop and wait for the object to reappear; improvement (reacquire):
+                # first back up to the tracking standoff over where it was last seen (it left
+                # the view at the closer final standoff, or moved out of it)
+                aligned = 0
+                if standoff < cfg.ibvs.standoff:
+                    lost_close = True  # lost at the final standoff: descend from farther
+                standoff = cfg.ibvs.standoff
+                if cfg.reacquire and p_meas is not None:
+                    try:
+                        q_back, _ = self.servo_step(q_cmd, p_meas, None, yaw, dt, standoff)
+                        q_cmd = q_back
+                    except UnreachableError:
+                        pass
                 q_cmd = self._send(arm, q_cmd)
                 base.stop()
-                aligned = 0
-                standoff = cfg.ibvs.standoff
                 wait(dt)
                 kf.predict(dt)
                 res.loop_s.append(time.perf_counter() - w0)
@@ -421,7 +436,7 @@ class TrackingGrasp:
                 or float(np.linalg.norm(kf.velocity()[:2])) <= cfg.final_standoff_max_speed
             )
             final = cfg.final_standoff if slow else cfg.moving_final_standoff
-            if aligned >= cfg.align_ticks and standoff > final:
+            if aligned >= cfg.align_ticks and standoff > final and not lost_close:
                 standoff, aligned = final, 0  # closer, still in view
                 continue
             if aligned >= cfg.align_ticks and steady and desk_z is not None and top_z is not None:
