@@ -6,9 +6,11 @@ Measures
       frames after warm-up) for each weights file (default: the shipped model, plus
       ``src/mmpa/perception/weights/ssd_pruned.pt`` when present), with parameters and MACs;
   (b) the tracking servo loop in the twin at 20 Hz control: wall time per tick including the
-      640x480 RGB-D capture (render + noise), detection, 3D location, IBVS + null space and
-      0.05 s of physics; and the part of it that is mmpa's own code (detection + location +
-      control), which is what a real robot would run per frame.
+      RGB-D capture (render + noise) at the servo loop's stream profile (320x240,
+      ``mmpa.experiments.grasp.SERVO_RESOLUTION``; and at 640x480 for comparison),
+      detection, 3D location, IBVS + null space and 0.05 s of physics; and the part of it
+      that is mmpa's own code (detection + location + control), which is what a real robot
+      would run per frame.
 Targets (issue 6): detector <= 30 ms per frame, servo loop >= 20 Hz. Always exits 0.
 """
 
@@ -57,18 +59,21 @@ def bench_detector(path: Path | None) -> None:
     )
 
 
-def bench_servo() -> None:
+def bench_servo(resolution: tuple[int, int]) -> None:
     from mmpa.experiments.grasp import Config, grasp_trial, make_grasper
     from mmpa.sim.world import SimWorld
 
     with SimWorld(site="0") as w:
         g = make_grasper(Config(), w)
-        row = grasp_trial(w, g, "tennis_ball", "normal", np.random.default_rng(0))
+        row = grasp_trial(
+            w, g, "tennis_ball", "normal", np.random.default_rng(0), resolution=resolution
+        )
     loop = row["loop_ms"]
     own = row["detect_ms"]
     cap = row["capture_ms"]
     print(
-        f"servo loop in the twin: {loop:.0f} ms/tick wall ({1000 / loop:.1f} Hz): RGB-D capture "
+        f"servo loop in the twin at {resolution[0]}x{resolution[1]}: {loop:.0f} ms/tick wall "
+        f"({1000 / loop:.1f} Hz): RGB-D capture "
         f"(render + noise, the twin) {cap:.0f} ms, detection + location {own:.0f} ms, control + "
         f"physics {loop - cap - own:.0f} ms; mmpa's own part {1000 / own:.0f} Hz; grasped "
         f"{row['grasped']} in {row['time_to_grasp']:.1f} s sim -> "
@@ -86,10 +91,13 @@ def main() -> None:
             bench_detector(p)
         except Exception as e:  # keep going: a benchmark always reports
             print(f"detector {p}: failed: {e}")
-    try:
-        bench_servo()
-    except Exception as e:
-        print(f"servo loop: failed: {e}")
+    from mmpa.experiments.grasp import SERVO_RESOLUTION
+
+    for res in (SERVO_RESOLUTION, (640, 480)):
+        try:
+            bench_servo(res)
+        except Exception as e:
+            print(f"servo loop at {res}: failed: {e}")
 
 
 if __name__ == "__main__":

@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from mmpa.errors import ConfigError
+from mmpa.errors import ConfigError, InvalidInputError
 from mmpa.perception.ssd import (
     SSD,
     Detector,
     SSDConfig,
+    block_mean_u8,
     box_iou,
     decode,
     default_boxes,
@@ -19,6 +20,7 @@ from mmpa.perception.ssd import (
     match,
     multibox_loss,
     nms,
+    to_input,
 )
 
 
@@ -170,3 +172,22 @@ def test_missing_and_corrupt_weights(tmp_path):
     bad.write_bytes(b"not a torch file")
     with pytest.raises(ConfigError, match="corrupt"):
         Detector.load(bad)
+
+
+@pytest.mark.parametrize("f", [2, 3, 4, 17])
+def test_block_mean_rounds_half_to_even_exactly(f):
+    rng = np.random.default_rng(f)
+    h, w = 24 // min(f, 4) + 1, 7
+    for img in (
+        rng.integers(0, 256, (h * f, w * f, 3), dtype=np.uint8),
+        (rng.integers(0, 3, (h * f, w * f, 3)) * 2 + 253 * (f % 2)).astype(np.uint8),  # ties
+    ):
+        ref = np.rint(img.reshape(h, f, w, f, 3).astype(float).mean(axis=(1, 3)))
+        np.testing.assert_array_equal(block_mean_u8(img, f), ref.astype(np.uint8))
+    full = rng.integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    small, sx, sy = to_input(full, 320, 240)
+    ref = np.rint(full.reshape(240, 2, 320, 2, 3).astype(float).mean(axis=(1, 3)))
+    assert (sx, sy) == (2.0, 2.0)
+    np.testing.assert_array_equal(small, ref.astype(np.uint8))
+    with pytest.raises(InvalidInputError):
+        block_mean_u8(full[:-1], 2)

@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from mmpa.errors import SimulationError, UnknownNameError
+from mmpa.errors import InvalidInputError, SimulationError, UnknownNameError
 from mmpa.geometry import se2_compose, se2_inv
 from mmpa.robot.description import (
     BaseDescription,
@@ -25,11 +25,13 @@ from mmpa.robot.interfaces import Camera, Lidar, PhotoSensor, deproject
 from mmpa.sim.error_model import CameraNoise, LidarNoise, OdometryNoise
 from mmpa.sim.noise import (
     axial_depth_sigma,
+    bernoulli_indices,
     color_noise,
     depth_edges,
     depth_noise,
     odometry_increment_noise,
     range_noise,
+    standard_normal_f32,
 )
 from mmpa.sim.sensors import (
     SimCamera,
@@ -162,6 +164,75 @@ def _clock() -> float:
 
 # --------------------------------------------------------------------------------------------
 # pure noise functions
+
+
+def test_standard_normal_f32_is_standard_normal() -> None:
+    from scipy import stats
+
+    x = standard_normal_f32(np.random.default_rng(0), (301, 333))  # odd count: one pair cut
+    assert x.dtype == np.float32 and x.shape == (301, 333)
+    f = x.astype(float).ravel()
+    assert abs(f.mean()) < 4 / math.sqrt(f.size)
+    assert f.std() == pytest.approx(1.0, abs=0.01)
+    assert np.mean(f**4) == pytest.approx(3.0, abs=0.06)  # Gaussian kurtosis
+    assert stats.kstest(f, "norm").pvalue > 1e-3
+    # the two draws of a Box-Muller pair (first / second half) are independent
+    n = f.size // 2
+    assert abs(np.corrcoef(f[:n], f[n : 2 * n])[0, 1]) < 0.02
+    assert abs(np.corrcoef(f[:n] ** 2, f[n : 2 * n] ** 2)[0, 1]) < 0.02
+    np.testing.assert_array_equal(x, standard_normal_f32(np.random.default_rng(0), (301, 333)))
+
+
+@pytest.mark.parametrize("p", [0.0, 0.02, 0.3, 1.0])
+def test_bernoulli_indices_is_a_bernoulli_process(p: float) -> None:
+    n, reps = 5000, 300
+    rng = np.random.default_rng(1)
+    draws = [bernoulli_indices(rng, n, p) for _ in range(reps)]
+    for idx in draws[:20]:
+        assert np.all(np.diff(idx) > 0) and (idx.size == 0 or (idx[0] >= 0 and idx[-1] < n))
+    counts = np.array([d.size for d in draws])
+    # Binomial(n, p) counts
+    assert counts.mean() == pytest.approx(n * p, abs=4 * math.sqrt(n * p * (1 - p) / reps) + 1e-9)
+    if 0 < p < 1:
+        assert counts.var() == pytest.approx(n * p * (1 - p), rel=0.25)
+        # every position equally likely (first and second half, even and odd indices)
+        allidx = np.concatenate(draws)
+        for sel in (allidx < n // 2, allidx % 2 == 0):
+            assert sel.mean() == pytest.approx(0.5, abs=4 * 0.5 / math.sqrt(allidx.size))
+
+
+def _depth_edges_reference(z: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel loop: the largest jump to a valid 4-neighbour (right, left, down, up first)."""
+    h, w = z.shape
+    ok = np.isfinite(z) & (z > 0)
+    edge = np.zeros((h, w), bool)
+    other = np.where(ok, z, 0.0)
+    for i in range(h):
+        for j in range(w):
+            if not ok[i, j]:
+                continue
+            best = 0.0
+            for di, dj in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+                a, b = i + di, j + dj
+                if 0 <= a < h and 0 <= b < w and ok[a, b] and abs(z[a, b] - z[i, j]) > best:
+                    best = abs(z[a, b] - z[i, j])
+                    other[i, j] = z[a, b]
+            edge[i, j] = best > threshold
+    return edge, other
+
+
+def test_depth_edges_against_a_pixel_loop() -> None:
+    rng = np.random.default_rng(4)
+    levels = np.array([0.5, 0.6, 1.0, 1.02, 2.0, 0.0, np.nan, np.inf, -1.0])
+    for _ in range(5):
+        z = rng.choice(levels, size=(17, 23)) + rng.integers(0, 2, (17, 23)) * 0.03
+        edge, other = depth_edges(z, 0.05)
+        e_ref, o_ref = _depth_edges_reference(z, 0.05)
+        np.testing.assert_array_equal(edge, e_ref)
+        ok = np.isfinite(z) & (z > 0)
+        np.testing.assert_array_equal(other[ok], o_ref[ok])
+        _, o32 = depth_edges(z.astype(np.float32), 0.05)  # float32 stays float32
+        assert o32.dtype == np.float32
 
 
 def test_depth_noise_sigma_scale_and_holes() -> None:
@@ -348,6 +419,36 @@ def test_camera_flat_wall_noise_statistics(scene, camera) -> None:
     sigma_z = 1.0**2 * 0.08 / (desc.depth_focal_native * desc.baseline)
     assert np.std(res) == pytest.approx(sigma_z, rel=0.3)
     assert abs(np.mean(res)) < 4 * 0.001 + 1e-4  # only the per-capture scale error
+
+
+def test_camera_set_resolution_same_rays(scene, camera) -> None:
+    m, d = scene
+    full = camera.capture_truth()
+    camera.set_resolution(320, 240)
+    assert camera.resolution == (320, 240)
+    k = camera.intrinsics
+    assert (k.width, k.height, k.fx, k.cx, k.cy) == (320, 240, 307.5, 159.5, 119.5)
+    half = camera.capture_truth()
+    assert half.color.shape == (240, 320, 3) and half.depth.shape == (240, 320)
+    assert half.intrinsics == k
+    # every pixel deprojects onto a true surface: the rays are those of the new intrinsics
+    T = T_world_camera_optical(m, d, "wrist_camera")
+    p = deproject(half.depth, half.color, k).transformed(T, "world").points
+    assert np.max(_surface_distance(p)) < 1e-3
+    # the same view: where a 2x2 block of the 640x480 depth is smooth, the 320x240 pixel at
+    # the block's center sees a depth within the block's range
+    blocks = full.depth.reshape(240, 2, 320, 2).astype(float)
+    spread = np.ptp(blocks, axis=(1, 3))
+    smooth = spread < 0.02
+    assert smooth.mean() > 0.95
+    dev = np.abs(half.depth - blocks.mean(axis=(1, 3)))
+    assert np.all(dev[smooth] <= 0.5 * spread[smooth] + 2e-4)
+    noisy = camera.capture()
+    assert noisy.depth.shape == (240, 320) and noisy.intrinsics == k
+    with pytest.raises(InvalidInputError):
+        camera.set_resolution(320, 200)  # another aspect ratio
+    camera.set_resolution(640, 480)
+    np.testing.assert_array_equal(camera.capture_truth().depth, full.depth)
 
 
 def test_camera_reproducible(scene) -> None:

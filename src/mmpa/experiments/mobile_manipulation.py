@@ -170,7 +170,7 @@ def place_trial_objects(world: Any, rng: np.random.Generator, name: str, others:
 
 def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
     """One run (module doc); truth read only for the evaluation columns."""
-    from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET
+    from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, SERVO_RESOLUTION
     from mmpa.localization.localizer import make_localizer
     from mmpa.navigation.mission import laser_pose2d, navigate, twin_map, twin_nav_map
     from mmpa.navigation.planner import CostMap, plan_path
@@ -219,6 +219,7 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
         look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])
         q_look = look_configuration(rb, look, LOOK_HEIGHT)
         world.arm.move_joints(q_look)
+        world.camera.set_resolution(*SERVO_RESOLUTION)
         res = grasper.run(
             name,
             world.arm,

@@ -264,7 +264,11 @@ class Detection:
 
 def to_input(image: np.ndarray, width: int, height: int) -> tuple[np.ndarray, float, float]:
     """Resize (H, W, 3) uint8 to the network size (block mean for integer factors, else
-    nearest); returns the resized image and the (sx, sy) scale from network to input pixels."""
+    nearest); returns the resized image and the (sx, sy) scale from network to input pixels.
+
+    The block mean of an ``f x f`` block is rounded half to even (``np.rint`` of the exact
+    mean), computed in integers: the block sum ``S``, ``n = f^2``, ``q, r = divmod(S, n)``,
+    rounded up iff ``2 r > n`` or ``2 r = n`` and ``q`` is odd."""
     img = np.asarray(image)
     if img.ndim != 3 or img.shape[2] != 3:
         raise InvalidInputError(f"image must be (H, W, 3), got {img.shape}")
@@ -273,12 +277,32 @@ def to_input(image: np.ndarray, width: int, height: int) -> tuple[np.ndarray, fl
         return img, 1.0, 1.0
     fy, fx = h / height, w / width
     if fy == fx and fy == int(fy):
-        f = int(fy)
-        small = img.reshape(height, f, width, f, 3).mean((1, 3))
-        return np.rint(small).astype(np.uint8), fx, fy
+        return block_mean_u8(img, int(fy)), fx, fy
     rows = np.minimum((np.arange(height) + 0.5) * fy, h - 1).astype(int)
     cols = np.minimum((np.arange(width) + 0.5) * fx, w - 1).astype(int)
     return img[rows][:, cols], fx, fy
+
+
+def block_mean_u8(image: np.ndarray, f: int) -> np.ndarray:
+    """Mean of each ``f x f`` pixel block of a (f H, f W, C) uint8 image, rounded half to even
+    exactly (integer arithmetic, see :func:`to_input`); returns (H, W, C) uint8."""
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or img.ndim != 3 or img.shape[0] % f or img.shape[1] % f:
+        raise InvalidInputError(f"need (f H, f W, C) uint8 for f = {f}: {img.shape} {img.dtype}")
+    n = f * f
+    acc = np.uint16 if 255 * n < 2**16 else np.uint32
+    s = np.zeros((img.shape[0] // f, img.shape[1] // f, img.shape[2]), dtype=acc)
+    for a in range(f):
+        for b in range(f):
+            s += img[a::f, b::f]
+    if n & (n - 1) == 0:  # a power of two: shift and mask
+        k = n.bit_length() - 1
+        q, r = s >> k, s & (n - 1)
+    else:
+        q, r = np.divmod(s, acc(n))
+    up = (2 * r > n) | ((2 * r == n) & (q & 1 == 1))
+    q += up
+    return q.astype(np.uint8)
 
 
 def image_tensor(images: np.ndarray) -> torch.Tensor:

@@ -13,6 +13,7 @@ from functools import cached_property
 import numpy as np
 from pydantic import BaseModel, ConfigDict, field_validator, model_validator
 
+from mmpa.errors import InvalidInputError
 from mmpa.geometry import Array, vec6_to_T
 
 Vec6 = tuple[float, float, float, float, float, float]
@@ -150,6 +151,27 @@ class CameraIntrinsics(_Frozen):
     def fovy(self) -> float:
         """Vertical field of view (rad) of an ideal centered pinhole with these intrinsics."""
         return float(2.0 * np.arctan2(self.height / 2.0, self.fy))
+
+    def resized(self, width: int, height: int) -> CameraIntrinsics:
+        """The same camera streaming ``width`` x ``height`` (e.g. a D435 at 320x240): pixels
+        scaled by ``s = width / self.width``, ``f' = s f``, ``c' = s (c + 1/2) - 1/2`` (pixel
+        centers at integer coordinates), so every ray keeps its direction and the field of
+        view is unchanged. The aspect ratio must be kept exactly."""
+        if width <= 0 or height <= 0:
+            raise InvalidInputError(f"image size must be positive, got {width}x{height}")
+        if width * self.height != height * self.width:
+            raise InvalidInputError(
+                f"{width}x{height} changes the aspect ratio of {self.width}x{self.height}"
+            )
+        s = width / self.width
+        return CameraIntrinsics(
+            width=width,
+            height=height,
+            fx=self.fx * s,
+            fy=self.fy * s,
+            cx=s * (self.cx + 0.5) - 0.5,
+            cy=s * (self.cy + 0.5) - 0.5,
+        )
 
 
 class CameraDescription(_Frozen):

@@ -47,7 +47,7 @@ __all__ = [
 
 class IBVSConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    gain: float = Field(1.5, gt=0)  # lambda (1/s)
+    gain: float = Field(3.0, gt=0)  # lambda (1/s); 1.5 lost objects moving at 0.2 m/s
     orientation_gain: float = Field(2.0, gt=0)  # 1/s
     standoff: float = Field(0.25, gt=0)  # m, tracking height of the TCP above the object
     max_linear_speed: float = Field(0.5, gt=0)  # m/s of the camera

@@ -17,14 +17,14 @@ from mmpa.sim.error_model import CameraNoise, OdometryNoise
 __all__ = [
     "angle_diff",
     "axial_depth_sigma",
+    "bernoulli_indices",
     "color_noise",
     "depth_edges",
     "depth_noise",
     "odometry_increment_noise",
     "range_noise",
+    "standard_normal_f32",
 ]
-
-_NEIGHBOURS = ((0, 1), (0, -1), (1, 0), (-1, 0))
 
 
 def axial_depth_sigma(z: np.ndarray | float, cfg: CameraNoise, f_native: float, baseline: float):
@@ -32,30 +32,88 @@ def axial_depth_sigma(z: np.ndarray | float, cfg: CameraNoise, f_native: float, 
     return np.square(z) * (cfg.subpixel / (f_native * baseline))
 
 
+def standard_normal_f32(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    """float32 standard normal draws of ``shape`` by the Box-Muller transform.
+
+    From pairs of the generator's float32 uniforms ``u1, u2`` in [0, 1):
+    ``r = sqrt(-2 ln(1 - u1))``, ``(r cos 2 pi u2, r sin 2 pi u2)`` are two independent
+    N(0, 1) draws (Box & Muller 1958). About 3x faster than ``rng.standard_normal`` for the
+    ~10^6 per-pixel draws of an image; the 24-bit uniforms bound ``|x|`` by
+    ``sqrt(48 ln 2) = 5.77`` (a tail mass of 8e-9).
+    """
+    n = int(np.prod(shape, dtype=np.int64))
+    m = (n + 1) // 2
+    u = rng.random((2, m), dtype=np.float32)
+    r = np.log1p(-u[0])
+    r *= np.float32(-2.0)
+    np.sqrt(r, out=r)
+    t = u[1]
+    t *= np.float32(2.0 * np.pi)
+    out = np.empty(2 * m, dtype=np.float32)
+    np.cos(t, out=out[:m])
+    np.sin(t, out=out[m:])
+    out[:m] *= r
+    out[m:] *= r
+    return out[:n].reshape(shape)
+
+
+def bernoulli_indices(rng: np.random.Generator, n: int, p: float) -> np.ndarray:
+    """Sorted indices (int64) of the successes among ``n`` independent Bernoulli(``p``)
+    trials, drawn as geometric gaps between successes (``~n p`` draws instead of ``n``;
+    the same process: the gaps of a Bernoulli process are iid Geometric(p))."""
+    if n <= 0 or p <= 0:
+        return np.zeros(0, dtype=np.int64)
+    if p >= 1:
+        return np.arange(n, dtype=np.int64)
+    if p > 0.25:  # dense: gaps are short, one uniform per trial is cheaper
+        return np.flatnonzero(rng.random(n) < p)
+    parts: list[np.ndarray] = []
+    last = -1  # index of the last success so far
+    while True:
+        left = n - 1 - last
+        k = int(left * p + 6.0 * np.sqrt(left * p) + 16)
+        idx = last + np.cumsum(rng.geometric(p, k))
+        if idx[-1] >= n:
+            parts.append(idx[idx < n])
+            return np.concatenate(parts)
+        parts.append(idx)
+        last = int(idx[-1])
+
+
 def depth_edges(depth: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
     """Depth-discontinuity pixels and, for each, the 4-neighbour across the largest jump.
 
     Only pairs of valid pixels (finite, > 0) count. Returns ``(edge, other)``: ``edge`` (H, W)
     bool is True where some valid 4-neighbour differs by more than ``threshold`` (m); ``other``
-    (H, W) holds that neighbour's depth (the pixel's own depth where it is not an edge).
+    (H, W) holds that neighbour's depth (the pixel's own depth where it is not an edge); on
+    equal jumps the right, then left, lower, upper neighbour wins. float32 input is kept
+    float32, anything else is computed in float64.
     """
-    z = np.asarray(depth, dtype=np.float64)
+    z = np.asarray(depth)
+    if z.dtype != np.float32:
+        z = z.astype(np.float64)
     if z.ndim != 2:
         raise InvalidInputError(f"depth must be (H, W), got {z.shape}")
-    h, w = z.shape
     valid = np.isfinite(z) & (z > 0)
-    zc = np.where(valid, z, 0.0)
-    zp = np.pad(zc, 1, mode="edge")
-    vp = np.pad(valid, 1, mode="constant", constant_values=False)
+    zc = np.where(valid, z, z.dtype.type(0))
+    # jumps between horizontal (H, W-1) and vertical (H-1, W) pairs of valid pixels
+    jh = np.abs(zc[:, 1:] - zc[:, :-1])
+    jh[~(valid[:, 1:] & valid[:, :-1])] = 0
+    jv = np.abs(zc[1:] - zc[:-1])
+    jv[~(valid[1:] & valid[:-1])] = 0
     best = np.zeros_like(zc)
     other = zc.copy()
-    for dy, dx in _NEIGHBOURS:
-        nz = zp[1 + dy : h + 1 + dy, 1 + dx : w + 1 + dx]
-        nv = vp[1 + dy : h + 1 + dy, 1 + dx : w + 1 + dx]
-        jump = np.where(valid & nv, np.abs(nz - zc), 0.0)
-        better = jump > best
-        best = np.where(better, jump, best)
-        other = np.where(better, nz, other)
+    # (pixel slice, neighbour slice, jump) for the right, left, lower, upper neighbour
+    for px, nb, jump in (
+        ((slice(None), slice(None, -1)), (slice(None), slice(1, None)), jh),
+        ((slice(None), slice(1, None)), (slice(None), slice(None, -1)), jh),
+        ((slice(None, -1), slice(None)), (slice(1, None), slice(None)), jv),
+        ((slice(1, None), slice(None)), (slice(None, -1), slice(None)), jv),
+    ):
+        b = best[px]
+        better = jump > b
+        np.copyto(b, jump, where=better)
+        np.copyto(other[px], zc[nb], where=better)
     return best > threshold, other
 
 
@@ -78,19 +136,23 @@ def depth_noise(
        ``cfg.flying_pixel_fraction`` takes a depth drawn uniformly between its own and that
        neighbour's (a point floating between fore- and background);
     2. per-capture scale error: every depth times ``1 + N(0, cfg.depth_scale_sigma)``;
-    3. axial noise ``N(0, sigma_z)``, ``sigma_z = z^2 cfg.subpixel / (f_native baseline)``;
-    4. random holes: a fraction ``cfg.invalid_fraction`` of the pixels becomes invalid;
+    3. axial noise ``N(0, sigma_z)``, ``sigma_z = z^2 cfg.subpixel / (f_native baseline)``
+       (:func:`standard_normal_f32` draws);
+    4. random holes: each pixel independently invalid with probability
+       ``cfg.invalid_fraction`` (:func:`bernoulli_indices`);
     5. measurements outside ``[min_range, max_range]`` become invalid.
 
-    Returns float32 (H, W) metres, 0 where invalid.
+    Computed in float32 (the depth resolution of the frame: 1e-6 m at 4 m, against a
+    ``sigma_z`` of 0.3 mm at the 0.2 m minimum range). Returns float32 (H, W) metres, 0 where
+    invalid.
     """
-    z = np.asarray(depth, dtype=np.float64)
+    z = np.array(depth, dtype=np.float32)  # a fresh copy
     if z.ndim != 2:
         raise InvalidInputError(f"depth must be (H, W), got {z.shape}")
     if f_native <= 0 or baseline <= 0:
         raise InvalidInputError(f"f_native ({f_native}) and baseline ({baseline}) must be positive")
     valid = np.isfinite(z) & (z > 0)
-    z = np.where(valid, z, 0.0)
+    z[~valid] = 0.0
 
     scale = 1.0 + rng.normal(0.0, cfg.depth_scale_sigma)
 
@@ -98,32 +160,39 @@ def depth_noise(
         edge, other = depth_edges(z, cfg.edge_threshold)
         idx = np.flatnonzero(edge)
         fly = idx[rng.random(idx.size) < cfg.flying_pixel_fraction]
-        t = rng.random(fly.size)
+        t = rng.random(fly.size, dtype=np.float32)
         zf = z.reshape(-1)  # a view of the fresh array z
         zf[fly] = zf[fly] + t * (other.reshape(-1)[fly] - zf[fly])
 
-    z *= scale
-    sigma = axial_depth_sigma(z, cfg, f_native, baseline)
-    z += sigma * rng.standard_normal(z.shape)
+    z *= np.float32(scale)
+    noise = standard_normal_f32(rng, z.shape)
+    noise *= z
+    noise *= z
+    noise *= np.float32(cfg.subpixel / (f_native * baseline))  # sigma_z N(0, 1)
+    z += noise
 
-    holes = rng.random(z.shape) < cfg.invalid_fraction
-    keep = valid & ~holes & (z >= min_range) & (z <= max_range)
-    return np.where(keep, z, 0.0).astype(np.float32)
+    keep = valid & (z >= min_range) & (z <= max_range)
+    keep.reshape(-1)[bernoulli_indices(rng, z.size, cfg.invalid_fraction)] = False
+    z[~keep] = 0.0
+    return z
 
 
 def color_noise(rgb: np.ndarray, rng: np.random.Generator, cfg: CameraNoise) -> np.ndarray:
     """Lighting gain then per-pixel Gaussian noise on an RGB image.
 
     ``rgb`` (H, W, 3) uint8. Intensities in [0, 1] are multiplied by ``cfg.lighting_gain``, get
-    ``N(0, cfg.color_sigma)`` per channel, are clipped to [0, 1] and rounded back to uint8.
+    ``N(0, cfg.color_sigma)`` per channel (:func:`standard_normal_f32` draws), are clipped to
+    [0, 1] and rounded back to uint8 (computed in float32, in units of 1/255).
     """
     c = np.asarray(rgb)
     if c.ndim != 3 or c.shape[2] != 3:
         raise InvalidInputError(f"color must be (H, W, 3), got {c.shape}")
-    f = c.astype(np.float32) * np.float32(cfg.lighting_gain / 255.0)
-    f += rng.standard_normal(c.shape, dtype=np.float32) * np.float32(cfg.color_sigma)
-    np.clip(f, 0.0, 1.0, out=f)
-    return np.rint(f * 255.0).astype(np.uint8)
+    f = standard_normal_f32(rng, c.shape)
+    f *= np.float32(255.0 * cfg.color_sigma)
+    f += c.astype(np.float32) * np.float32(cfg.lighting_gain)
+    np.clip(f, 0.0, 255.0, out=f)
+    np.rint(f, out=f)
+    return f.astype(np.uint8)
 
 
 def range_noise(

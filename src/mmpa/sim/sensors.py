@@ -112,6 +112,8 @@ class SimCamera:
 
     Owns a ``mujoco.Renderer`` at the color resolution: call :meth:`close` when done (or use
     it as a context manager). Depth is aligned to color (same intrinsics ``desc.color``).
+    :meth:`set_resolution` switches to another stream profile of the same camera (e.g.
+    320x240 for the tracking servo loop: a quarter of the pixels to render and corrupt).
     """
 
     def __init__(
@@ -127,20 +129,43 @@ class SimCamera:
         self._model, self._data, self._desc = model, data, desc
         self._noise, self._rng, self._clock = noise, rng, clock
         self._camera = camera
+        self._native = desc.color
         self._cam_id = _lookup(model, mujoco.mjtObj.mjOBJ_CAMERA, camera, "camera", model.ncam)
-        k = desc.color
-        self._check_model(model, k)
         extent = float(model.stat.extent)
         self._far = float(model.vis.map.zfar) * extent
         self._renderer: mujoco.Renderer | None = None
+        self._renderer = self._make_renderer(desc.color)
+
+    def _make_renderer(self, k: CameraIntrinsics) -> mujoco.Renderer:
+        self._check_model(self._model, k)
         try:
-            self._renderer = mujoco.Renderer(model, height=k.height, width=k.width)
+            return mujoco.Renderer(self._model, height=k.height, width=k.width)
         except Exception as e:  # no GL context, framebuffer too small, ...
             raise SimulationError(
-                f"cannot create the MuJoCo renderer for {camera!r} ({k.width}x{k.height}): {e}. "
-                "Headless machines need MUJOCO_GL=egl or MUJOCO_GL=osmesa "
+                f"cannot create the MuJoCo renderer for {self._camera!r} ({k.width}x{k.height}): "
+                f"{e}. Headless machines need MUJOCO_GL=egl or MUJOCO_GL=osmesa "
                 "(with PYOPENGL_PLATFORM=osmesa)."
             ) from e
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        """``(width, height)`` of the frames now streamed (pixels)."""
+        k = self._desc.color
+        return k.width, k.height
+
+    def set_resolution(self, width: int, height: int) -> None:
+        """Stream ``width`` x ``height`` frames from now on: the camera's native intrinsics
+        :meth:`~mmpa.robot.description.CameraIntrinsics.resized` (same field of view and
+        rays; depth stays aligned to color). The noise model is per pixel and unchanged."""
+        if self._renderer is None:
+            raise SimulationError(f"camera {self._camera!r} was closed")
+        k = self._native.resized(int(width), int(height))
+        if k == self._desc.color:
+            return
+        renderer = self._make_renderer(k)
+        self._renderer.close()
+        self._renderer = renderer
+        self._desc = self._desc.model_copy(update={"color": k, "depth": k})
 
     def _check_model(self, model: mujoco.MjModel, k: CameraIntrinsics) -> None:
         g = model.vis.global_
