@@ -53,6 +53,19 @@ Interpretations (the paper leaves them open):
   particles are redrawn from ``N(mu_G, Sigma)``, so that a cloud spread by the motion model
   (Nav2's alphas are 0.2) still holds particles where the fix is; without it the sharp
   product weight lands on a handful of particles.
+- two-stage proposal (improvement, ``refine``): with fewer than three reflectors (and at weak
+  fixes, below) the motion model spreads the cloud by ~27 mm / 27 mrad per scan (Nav2's
+  alphas) while the sharp laser pins the pose to a few mm / mrad, so only a handful of
+  predicted particles carry weight and the estimate jumps by the particle spacing (the
+  ``reflector-dropout`` experiment's p95 spikes). :func:`refine_proposal` draws
+  ``refine_fraction`` of the particles from a Gaussian fitted to the first stage's posterior
+  (SD x ``refine_inflate``) and weights both sets by deterministic-mixture importance sampling
+  against a Gaussian fit of the predicted cloud.
+- weak fixes (improvement): a 3+ reflector fix whose position SD exceeds ``weak_fix_sd``
+  (reflectors nearly in a line, as along the corridor: lateral SD 20-60 mm, errors up to
+  115 mm measured) is fused like a tracked one: sharp laser (the corridor walls pin the lateral
+  position), two-stage proposal, injection scaled by ``track_inject_scale``. With Nav2's
+  laser field the estimate followed such fixes (113 mm lateral error in the corridor).
 - ``update_when_stationary``: reflector fixes also update the filter while the base stands
   still (Nav2 waits for ``update_min_d``); the motion model then adds no noise, and the
   injected particles keep the cloud from collapsing.
