@@ -276,6 +276,7 @@ class EnhancedConfig(BaseModel):
             track_partial=False,
             proposal_fraction=0.0,
             partial_laser=False,
+            refine=False,
         )
 
 
@@ -634,7 +635,7 @@ class EnhancedAMCL(AMCL):
         # (a corridor: lateral SD up to ~60 mm), is weak; the sharp laser, the two-stage
         # proposal and the scaled-down injection of the tracked case then apply
         fix_sd = float(np.sqrt(np.linalg.eigvalsh(fix.trilateration.cov[:2, :2]).max()))
-        tracked = tracked or fix_sd > e.weak_fix_sd
+        tracked = tracked or (e.track_partial and fix_sd > e.weak_fix_sd)
         self.last_fix_weak = tracked
         cov = None
         if e.position_metric == "trilateration":
@@ -646,7 +647,13 @@ class EnhancedAMCL(AMCL):
             Lc = np.linalg.cholesky(cov if cov is not None else np.eye(3))
             self.particles[idx] = self.rng.standard_normal((k, 3)) @ Lc.T + mu
             self.particles[idx, 2] = _wrap(self.particles[idx, 2])
-        p = self._laser_weights(scan, partial=tracked)
+        refine = tracked and e.refine and e.fusion == "product"
+        if refine and e.partial_laser:  # the log likelihood is reused by the second stage
+            lasl = self._laser_loglik(self.particles, scan)
+            p = np.exp(lasl - lasl.max())
+        else:
+            p = self._laser_weights(scan, partial=tracked)
+            lasl = np.log(np.maximum(p, 1e-300))
         omega = self.weights * p  # eq. 5
         omega = omega / max(float(omega.sum()), 1e-300)
         self._apply_weights(p)  # keeps w_slow / w_fast bookkeeping of AMCL
@@ -664,7 +671,7 @@ class EnhancedAMCL(AMCL):
         else:
             w_new = w_new / total  # line 19
         self.weights = w_new
-        if tracked and e.refine:  # improvement: two-stage proposal (see _partial_update)
+        if refine:  # improvement: two-stage proposal (see _partial_update)
             lm_fix, b_fix = self.observer.landmarks[fix.ids], fix.bearings
             floor = e.position_weight_floor * _EQ3_NORM
 
@@ -673,7 +680,12 @@ class EnhancedAMCL(AMCL):
                 d_ = position_weight(P, mu, cov)
                 return np.log(s_ + 1e-300) + self._laser_loglik(P, scan) + np.log(d_ + floor)
 
-            self._refined(tracked_loglik, tracked_loglik(self.particles))
+            lp = np.log(s + 1e-300) + np.log(d + floor)
+            if e.partial_laser:
+                lp = lp + lasl  # same scale as tracked_loglik
+            else:
+                lp = lp + self._laser_loglik(self.particles, scan)
+            self._refined(tracked_loglik, lp)
         else:
             self.resample(w_new)  # ParticleGeneration(omega_new)
         # lines 20-26: inject new particles around mu_G with probability d (eq. 8)
