@@ -53,6 +53,19 @@ Interpretations (the paper leaves them open):
   particles are redrawn from ``N(mu_G, Sigma)``, so that a cloud spread by the motion model
   (Nav2's alphas are 0.2) still holds particles where the fix is; without it the sharp
   product weight lands on a handful of particles.
+- two-stage proposal (improvement, ``refine``): with fewer than three reflectors (and at weak
+  fixes, below) the motion model spreads the cloud by ~27 mm / 27 mrad per scan (Nav2's
+  alphas) while the sharp laser pins the pose to a few mm / mrad, so only a handful of
+  predicted particles carry weight and the estimate jumps by the particle spacing (the
+  ``reflector-dropout`` experiment's p95 spikes). :func:`refine_proposal` draws
+  ``refine_fraction`` of the particles from a Gaussian fitted to the first stage's posterior
+  (SD x ``refine_inflate``) and weights both sets by deterministic-mixture importance sampling
+  against a Gaussian fit of the predicted cloud.
+- weak fixes (improvement): a 3+ reflector fix whose position SD exceeds ``weak_fix_sd``
+  (reflectors nearly in a line, as along the corridor: lateral SD 20-60 mm, errors up to
+  115 mm measured) is fused like a tracked one: sharp laser (the corridor walls pin the lateral
+  position), two-stage proposal, injection scaled by ``track_inject_scale``. With Nav2's
+  laser field the estimate followed such fixes (113 mm lateral error in the corridor).
 - ``update_when_stationary``: reflector fixes also update the filter while the base stands
   still (Nav2 waits for ``update_min_d``); the motion model then adds no noise, and the
   injected particles keep the cloud from collapsing.
@@ -60,6 +73,7 @@ Interpretations (the paper leaves them open):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -86,8 +100,11 @@ __all__ = [
     "ObserverConfig",
     "ReflectorFix",
     "ReflectorObserver",
+    "gaussian_fit",
+    "log_gauss",
     "orientation_weight",
     "position_weight",
+    "refine_proposal",
 ]
 
 _EQ3_NORM = (2 * np.pi) ** -1.5
@@ -220,6 +237,14 @@ class EnhancedConfig(BaseModel):
     # proposal + injection at tracked (2-reflector) fixes scaled down: their mu_G is weaker
     # than a 3+ reflector fix, the laser and the position weight do the rest
     track_inject_scale: float = Field(0.3, ge=0, le=1)
+    # m: a 3+ reflector fix whose position SD (largest axis) exceeds this is treated like a
+    # tracked one (reflectors nearly in a line, e.g. along a corridor)
+    weak_fix_sd: float = Field(0.01, gt=0)
+    # tracked / weak fixes: factor on eq. 3's covariance. The sigma model treats per-reflector
+    # range errors as independent, but the twin's fitted centers are biased per reflector
+    # (measured: +4.3 mm mean, 2-6 mm per landmark); 8 reflectors average that out, 2 do not.
+    # 4 (SD x 2) measured best of 0.25/1/4/6/16/100 (reflector-dropout, seed 1, 10 runs)
+    track_cov_scale: float = Field(4.0, gt=0)
     # improvement: with < 3 reflectors the laser is weighted with the product-form likelihood
     # field (sharp; Nav2's sum of cubes hardly tells 5 cm apart) on more beams, tempered by
     # ``partial_laser_power`` because neighbouring beams are not independent
@@ -235,6 +260,14 @@ class EnhancedConfig(BaseModel):
     partial_heading_sigma: float = Field(0.15, gt=0)  # rad
     partial_position_sigma: float = Field(0.02, gt=0)  # m, no reflector: proposal spread
     partial_converged_sd: float = Field(0.1, gt=0)  # m, no reflector: laser-only tracking below
+    # improvement (fewer than three reflectors): a second, Gaussian importance-sampling stage
+    # around the first stage's posterior (:func:`refine_proposal`); the motion model spreads
+    # the cloud by ~27 mm / 27 mrad per scan (Nav2 alphas) while the sharp laser pins it to a
+    # few mm / mrad, so the first stage keeps only a handful of particles
+    refine: bool = True
+    refine_fraction: float = Field(0.8, gt=0, le=1)  # share of the particles drawn in stage 2
+    refine_inflate: float = Field(2.0, ge=1)  # stage-2 proposal SD / stage-1 posterior SD
+    refine_floor: tuple[float, float, float] = (0.002, 0.002, 0.001)  # m, m, rad: SD floor
 
     @classmethod
     def paper(cls) -> EnhancedConfig:
@@ -248,6 +281,7 @@ class EnhancedConfig(BaseModel):
             track_partial=False,
             proposal_fraction=0.0,
             partial_laser=False,
+            refine=False,
         )
 
 
@@ -272,6 +306,71 @@ def orientation_weight(particles: Array, landmarks: Array, bearings: Array, sigm
     err = _wrap(bearings[None, :] - mu)
     g = np.exp(-(err**2) / (2 * sigma**2)) / (sigma * np.sqrt(2 * np.pi))
     return g.mean(axis=1)
+
+
+def gaussian_fit(particles: Array, weights: Array) -> tuple[Array, Array]:
+    """Weighted mean ``m`` (3,) (circular mean of the heading) and covariance ``C`` (3, 3) of
+    ``particles`` (N, 3) under normalized ``weights`` (N,)."""
+    m = np.array(
+        [
+            float(weights @ particles[:, 0]),
+            float(weights @ particles[:, 1]),
+            float(np.arctan2(weights @ np.sin(particles[:, 2]), weights @ np.cos(particles[:, 2]))),
+        ]
+    )
+    d = particles - m
+    d[:, 2] = _wrap(d[:, 2])
+    return m, (d * weights[:, None]).T @ d
+
+
+def log_gauss(particles: Array, mean: Array, cov: Array) -> Array:
+    """``log N(x; mean, cov)`` of every particle (N,), heading difference wrapped."""
+    d = particles - mean
+    d[:, 2] = _wrap(d[:, 2])
+    L = np.linalg.cholesky(cov)
+    z = np.linalg.solve(L, d.T)
+    return -0.5 * np.einsum("ij,ij->j", z, z) - np.log(np.diag(L)).sum() - 1.5 * np.log(2 * np.pi)
+
+
+def refine_proposal(
+    prior: Array,
+    loglik_prior: Array,
+    loglik: Callable[[Array], Array],
+    fraction: float,
+    inflate: float,
+    floor: Array,
+    rng: np.random.Generator,
+) -> tuple[Array, Array]:
+    """Two-stage (adaptive) importance sampling of ``p(x | z) ~ p(z | x) p(x)`` (improvement).
+
+    Stage 1: the predicted particles ``prior`` (N, 3), drawn from ``p(x)``, with weights
+    ``w1 ~ p(z | x)`` (``loglik_prior``). Stage 2: ``n2 = fraction N`` particles drawn from
+    ``q = N(m1, inflate^2 C1 + diag(floor^2))``, ``(m1, C1)`` the Gaussian fit of stage 1's
+    posterior. Both sets are combined by deterministic-mixture weighting (Owen and Zhou 2000)
+    with ``p(x)`` approximated by ``N(mp, Cp)`` fitted to ``prior``:
+    ``w(x) = p(z | x) p(x) / ((n1 p(x) + n2 q(x)) / (n1 + n2))``, ``n1 = N - n2`` stage-1
+    particles kept at random. Returns (particles (N, 3), normalized weights (N,))."""
+    n = prior.shape[0]
+    n2 = round(fraction * n)
+    n1 = n - n2
+    w1 = np.exp(loglik_prior - loglik_prior.max())
+    w1 /= w1.sum()
+    m1, c1 = gaussian_fit(prior, w1)
+    mp, cp = gaussian_fit(prior, np.full(n, 1.0 / n))
+    fl = np.diag(np.asarray(floor, float) ** 2)
+    cq = inflate**2 * c1 + fl
+    cp = cp + fl
+    x2 = rng.standard_normal((n2, 3)) @ np.linalg.cholesky(cq).T + m1
+    x2[:, 2] = _wrap(x2[:, 2])
+    keep = rng.choice(n, n1, replace=False) if n1 < n else np.arange(n)
+    x = np.concatenate([prior[keep], x2])
+    ll = np.concatenate([loglik_prior[keep], loglik(x2)])
+    lp = log_gauss(x, mp, cp)
+    lq = log_gauss(x, m1, cq)
+    lmix = np.logaddexp(np.log(n1 / n) + lp, np.log(n2 / n) + lq) if n1 else lq
+    lw = ll + lp - lmix
+    w = np.exp(lw - lw.max())
+    return x, w / w.sum()
 
 
 class EnhancedAMCL(AMCL):
@@ -299,6 +398,7 @@ class EnhancedAMCL(AMCL):
         self._far_fixes = 0
         self.kidnap_resets = 0
         self.track_status = "none"  # why the last partial tracking fix was (not) made
+        self.last_fix_weak = False  # the last fused fix was tracked or weak (weak_fix_sd)
 
     def _laser_weights(self, scan: LaserScan, partial: bool) -> Array:
         """Laser likelihood of every particle: Nav2's likelihood field, or with ``partial`` (and
@@ -313,6 +413,41 @@ class EnhancedAMCL(AMCL):
         off = e.partial_laser_offset * self.grid.resolution
         ll = self.log_likelihood_field(self.particles, ranges, angles, e.partial_laser_sigma, off)
         return np.exp(e.partial_laser_power * (ll - ll.max()))
+
+    def _laser_loglik(self, particles: Array, scan: LaserScan) -> Array:
+        """Unnormalized log laser likelihood of the partial modes: ``power log p`` (product-form
+        field), or the log of Nav2's field without ``partial_laser``. Returns (N,)."""
+        e = self.ecfg
+        if not e.partial_laser:
+            return np.log(self.measurement_weights(particles, scan))
+        ranges, angles = self._beams(scan, e.partial_laser_beams)
+        if ranges.size == 0:
+            return np.zeros(len(particles))
+        off = e.partial_laser_offset * self.grid.resolution
+        ll = self.log_likelihood_field(particles, ranges, angles, e.partial_laser_sigma, off)
+        return e.partial_laser_power * ll
+
+    def _refined(self, loglik: Callable[[Array], Array], lp: Array) -> None:
+        """Replace the (predicted) particles by :func:`refine_proposal`'s weighted set for the
+        partial-mode log likelihood ``loglik`` (``lp``: its values on the particles) and
+        resample it (improvement)."""
+        e = self.ecfg
+        if not np.all(np.isfinite(lp)):
+            lp = np.where(np.isfinite(lp), lp, -np.inf)
+            if not np.isfinite(lp).any():
+                return
+        x, w = refine_proposal(
+            self.particles,
+            lp,
+            loglik,
+            e.refine_fraction,
+            e.refine_inflate,
+            np.asarray(e.refine_floor),
+            self.rng,
+        )
+        self.particles = x
+        self.weights = w
+        self.resample(w)
 
     def _gate(self, fix: ReflectorFix) -> str:
         """``"ok"``, ``"outlier"`` or ``"reseed"`` for a fix (improvement). A fix farther than
@@ -430,22 +565,35 @@ class EnhancedAMCL(AMCL):
                     self.rng.standard_normal((k, 2))
                 )
             self.particles[idx, 2] = _wrap(th)
-        P = self.particles
-        dx = L[None, :, 0] - P[:, 0:1]
-        dy = L[None, :, 1] - P[:, 1:2]
-        rng_err = np.hypot(dx, dy) - det.ranges[di][None, :]
-        brg_err = _wrap(np.arctan2(dy, dx) - P[:, 2:3] - det.bearings[di][None, :])
-        ll = np.exp(
-            -0.5 * ((rng_err / e.track_sigma_range) ** 2 + (brg_err / e.track_sigma_bearing) ** 2)
-        ).prod(axis=1)  # (N,), 1 without reflectors
-        p = self._laser_weights(scan, partial=True)
-        self._apply_weights(p)
-        w = self.weights * (ll + 1e-12)
-        total = float(w.sum())
-        if not np.isfinite(total) or total <= 0:
-            return None
-        self.weights = w / total
-        self.resample(self.weights)
+        r_obs, b_obs = det.ranges[di], det.bearings[di]
+
+        def reflector_lik(P: Array) -> Array:  # (N,), 1 without reflectors
+            dx = L[None, :, 0] - P[:, 0:1]
+            dy = L[None, :, 1] - P[:, 1:2]
+            rng_err = np.hypot(dx, dy) - r_obs[None, :]
+            brg_err = _wrap(np.arctan2(dy, dx) - P[:, 2:3] - b_obs[None, :])
+            return np.exp(
+                -0.5
+                * ((rng_err / e.track_sigma_range) ** 2 + (brg_err / e.track_sigma_bearing) ** 2)
+            ).prod(axis=1)
+
+        if e.refine:
+            lp = self._laser_loglik(self.particles, scan)
+            self._apply_weights(np.exp(lp - lp.max()))  # w_slow / w_fast bookkeeping
+            self._refined(
+                lambda P: self._laser_loglik(P, scan) + np.log(reflector_lik(P) + 1e-12),
+                lp + np.log(reflector_lik(self.particles) + 1e-12),
+            )
+        else:
+            ll = reflector_lik(self.particles)
+            p = self._laser_weights(scan, partial=True)
+            self._apply_weights(p)
+            w = self.weights * (ll + 1e-12)
+            total = float(w.sum())
+            if not np.isfinite(total) or total <= 0:
+                return None
+            self.weights = w / total
+            self.resample(self.weights)
         self._odom_last_update = odom_pose.copy()
         self._force_update = False
         self._estimate = None
@@ -488,9 +636,17 @@ class EnhancedAMCL(AMCL):
             self.weights = np.full(len(self.particles), 1.0 / len(self.particles))
             self.kidnap_resets += 1
         mu = fix.pose
+        # improvement: a fix from two tracked reflectors, or from reflectors nearly in a line
+        # (a corridor: lateral SD up to ~60 mm), is weak; the sharp laser, the two-stage
+        # proposal and the scaled-down injection of the tracked case then apply
+        fix_sd = float(np.sqrt(np.linalg.eigvalsh(fix.trilateration.cov[:2, :2]).max()))
+        tracked = tracked or (e.track_partial and fix_sd > e.weak_fix_sd)
+        self.last_fix_weak = tracked
         cov = None
         if e.position_metric == "trilateration":
             cov = fix.trilateration.cov + np.diag(e.position_cov_floor)
+            if tracked:
+                cov = cov * e.track_cov_scale
         frac = e.proposal_fraction * (e.track_inject_scale if tracked else 1.0)
         if frac > 0:  # mixture proposal: some predicted particles drawn at mu_G
             k = round(frac * len(self.particles))
@@ -498,7 +654,13 @@ class EnhancedAMCL(AMCL):
             Lc = np.linalg.cholesky(cov if cov is not None else np.eye(3))
             self.particles[idx] = self.rng.standard_normal((k, 3)) @ Lc.T + mu
             self.particles[idx, 2] = _wrap(self.particles[idx, 2])
-        p = self._laser_weights(scan, partial=tracked)
+        refine = tracked and e.refine and e.fusion == "product"
+        if refine and e.partial_laser:  # the log likelihood is reused by the second stage
+            lasl = self._laser_loglik(self.particles, scan)
+            p = np.exp(lasl - lasl.max())
+        else:
+            p = self._laser_weights(scan, partial=tracked)
+            lasl = np.log(np.maximum(p, 1e-300))
         omega = self.weights * p  # eq. 5
         omega = omega / max(float(omega.sum()), 1e-300)
         self._apply_weights(p)  # keeps w_slow / w_fast bookkeeping of AMCL
@@ -516,7 +678,23 @@ class EnhancedAMCL(AMCL):
         else:
             w_new = w_new / total  # line 19
         self.weights = w_new
-        self.resample(w_new)  # ParticleGeneration(omega_new)
+        if refine:  # improvement: two-stage proposal (see _partial_update)
+            lm_fix, b_fix = self.observer.landmarks[fix.ids], fix.bearings
+            floor = e.position_weight_floor * _EQ3_NORM
+
+            def tracked_loglik(P: Array) -> Array:
+                s_ = orientation_weight(P, lm_fix, b_fix, e.bearing_sigma)
+                d_ = position_weight(P, mu, cov)
+                return np.log(s_ + 1e-300) + self._laser_loglik(P, scan) + np.log(d_ + floor)
+
+            lp = np.log(s + 1e-300) + np.log(d + floor)
+            if e.partial_laser:
+                lp = lp + lasl  # same scale as tracked_loglik
+            else:
+                lp = lp + self._laser_loglik(self.particles, scan)
+            self._refined(tracked_loglik, lp)
+        else:
+            self.resample(w_new)  # ParticleGeneration(omega_new)
         # lines 20-26: inject new particles around mu_G with probability d (eq. 8)
         # eq. 8 on eq. 3 as printed (identity metric): particles within ~1.9 m / rad of mu_G
         d_new = position_weight(self.particles, mu, None)
