@@ -282,7 +282,11 @@ class TrackingGrasp:
         P_star = (
             self._P_star if standoff is None else desired_point(self._T_fc, self._T_ft, standoff)
         )
-        v_cam = camera_velocity(P, P_star, cfg.ibvs.gain)
+        moving = (
+            v_obj is not None
+            and float(np.linalg.norm(np.asarray(v_obj)[:2])) > cfg.final_standoff_max_speed
+        )
+        v_cam = camera_velocity(P, P_star, cfg.ibvs.moving_gain if moving else cfg.ibvs.gain)
         n = np.linalg.norm(v_cam)
         if n > cfg.ibvs.max_linear_speed:
             v_cam *= cfg.ibvs.max_linear_speed / n
