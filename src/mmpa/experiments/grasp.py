@@ -110,6 +110,33 @@ class Operator:
             self.world.step(h)
 
 
+def run_grasp(
+    world: Any,
+    grasper: Any,
+    name: str,
+    wait: Callable[[float], None],
+    on_event: Callable[..., None] | None = None,
+    resolution: tuple[int, int] = SERVO_RESOLUTION,
+) -> Any:
+    """``grasper.run`` on the twin's robot, the wrist camera streaming ``resolution`` (the
+    camera's own resolution restored after); ``wait(dt)`` advances the world."""
+    before = world.camera.resolution
+    world.camera.set_resolution(*resolution)
+    try:
+        return grasper.run(
+            name,
+            world.arm,
+            world.gripper,
+            world.camera,
+            world.base,
+            wait,
+            lambda: world.time,
+            on_event=on_event,
+        )
+    finally:
+        world.camera.set_resolution(*before)
+
+
 def grasp_trial(
     world: Any,
     grasper: Any,
@@ -155,21 +182,7 @@ def grasp_trial(
         op.step(dt)
         probe.check()
 
-    before = world.camera.resolution
-    world.camera.set_resolution(*resolution)
-    try:
-        res = grasper.run(
-            name,
-            world.arm,
-            world.gripper,
-            world.camera,
-            world.base,
-            wait,
-            lambda: world.time,
-            on_event=on_event,
-        )
-    finally:
-        world.camera.set_resolution(*before)
+    res = run_grasp(world, grasper, name, wait, on_event, resolution)
     op.release()
     world.step(2.0)  # hold for 2 s in the physics
     p_obj = world.truth.T_map_object(name)[:3, 3]

@@ -170,7 +170,7 @@ def place_trial_objects(world: Any, rng: np.random.Generator, name: str, others:
 
 def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
     """One run (module doc); truth read only for the evaluation columns."""
-    from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, SERVO_RESOLUTION
+    from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, run_grasp
     from mmpa.localization.localizer import make_localizer
     from mmpa.navigation.mission import laser_pose2d, navigate, twin_map, twin_nav_map
     from mmpa.navigation.planner import CostMap, plan_path
@@ -219,16 +219,7 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
         look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])
         q_look = look_configuration(rb, look, LOOK_HEIGHT)
         world.arm.move_joints(q_look)
-        world.camera.set_resolution(*SERVO_RESOLUTION)
-        res = grasper.run(
-            name,
-            world.arm,
-            world.gripper,
-            world.camera,
-            world.base,
-            world.step,
-            lambda: world.time,
-        )
+        res = run_grasp(world, grasper, name, world.step)
         world.step(2.0)  # hold for 2 s in the physics
         p_obj = world.truth.T_map_object(name)[:3, 3]
         p_tcp = world.truth.T_map_tcp()[:3, 3]
