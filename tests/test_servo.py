@@ -143,3 +143,28 @@ def test_top_surface_and_grasp_height_on_a_synthetic_depth_image():
         grasp_height(0.0, 0.1)
     # nothing above the desk in the box: no top
     assert top_surface(np.full_like(depth, H), K, T, box, 0.0) is None
+
+
+def test_servo_step_gain_schedule_moving_vs_static():
+    """The IBVS gain is ``gain`` for an object the predictor sees static or slow and
+    ``moving_gain`` above ``final_standoff_max_speed``: the step changes with ``moving_gain``
+    only for the fast object."""
+    from mmpa.robot.kinematics import fk
+    from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+    from mmpa.servo.ibvs import IBVSConfig
+
+    rb = default_robot()
+    q = np.asarray(rb.arm.view_bench, float)
+    T_cam = fk(rb.arm.dh, q) @ rb.camera.T_flange_camera
+    p_obj = apply(T_cam, np.array([0.03, 0.02, 0.35]))  # in view, off the desired point
+
+    def step(moving_gain: float, v_obj):
+        cfg = GraspConfig(ibvs=IBVSConfig(gain=1.5, moving_gain=moving_gain))
+        g = TrackingGrasp(None, rb, cfg)
+        return g.servo_step(q, p_obj, v_obj, None, 0.02)[0] - q
+
+    slow, fast = np.array([0.02, 0.0, 0.0]), np.array([0.2, 0.0, 0.0])
+    np.testing.assert_allclose(step(1.5, slow), step(4.5, slow), atol=1e-12)
+    np.testing.assert_allclose(step(1.5, None), step(4.5, None), atol=1e-12)
+    d_lo, d_hi = step(1.5, fast), step(4.5, fast)
+    assert np.linalg.norm(d_hi - d_lo) > 1e-4
