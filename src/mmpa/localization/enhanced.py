@@ -660,7 +660,9 @@ class EnhancedAMCL(AMCL):
             p = np.exp(lasl - lasl.max())
         else:
             p = self._laser_weights(scan, partial=tracked)
-            lasl = np.log(np.maximum(p, 1e-300))
+            # with refine (so partial_laser off) p is Nav2's field: _laser_loglik = log p
+            with np.errstate(divide="ignore"):
+                lasl = np.log(p) if refine else None
         omega = self.weights * p  # eq. 5
         omega = omega / max(float(omega.sum()), 1e-300)
         self._apply_weights(p)  # keeps w_slow / w_fast bookkeeping of AMCL
@@ -687,12 +689,8 @@ class EnhancedAMCL(AMCL):
                 d_ = position_weight(P, mu, cov)
                 return np.log(s_ + 1e-300) + self._laser_loglik(P, scan) + np.log(d_ + floor)
 
-            lp = np.log(s + 1e-300) + np.log(d + floor)
-            if e.partial_laser:
-                lp = lp + lasl  # same scale as tracked_loglik
-            else:
-                lp = lp + self._laser_loglik(self.particles, scan)
-            self._refined(tracked_loglik, lp)
+            assert lasl is not None  # _laser_loglik on these particles (computed above)
+            self._refined(tracked_loglik, np.log(s + 1e-300) + np.log(d + floor) + lasl)
         else:
             self.resample(w_new)  # ParticleGeneration(omega_new)
         # lines 20-26: inject new particles around mu_G with probability d (eq. 8)
