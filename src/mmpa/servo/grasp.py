@@ -260,6 +260,15 @@ class TrackingGrasp:
         arm.command(q_cmd)
         return q_cmd
 
+    def _moving(self, v_obj: Array | None) -> bool:
+        """An object whose (predicted) velocity ``v_obj`` (3,) m/s exceeds
+        ``final_standoff_max_speed`` in the desk plane counts as moving (gain, standoff and
+        descent speed switch to their ``moving_`` values)."""
+        return (
+            v_obj is not None
+            and float(np.linalg.norm(np.asarray(v_obj)[:2])) > self.cfg.final_standoff_max_speed
+        )
+
     def servo_step(
         self,
         q_cmd: Array,
@@ -282,11 +291,8 @@ class TrackingGrasp:
         P_star = (
             self._P_star if standoff is None else desired_point(self._T_fc, self._T_ft, standoff)
         )
-        moving = (
-            v_obj is not None
-            and float(np.linalg.norm(np.asarray(v_obj)[:2])) > cfg.final_standoff_max_speed
-        )
-        v_cam = camera_velocity(P, P_star, cfg.ibvs.moving_gain if moving else cfg.ibvs.gain)
+        gain = cfg.ibvs.moving_gain if self._moving(v_obj) else cfg.ibvs.gain
+        v_cam = camera_velocity(P, P_star, gain)
         n = np.linalg.norm(v_cam)
         if n > cfg.ibvs.max_linear_speed:
             v_cam *= cfg.ibvs.max_linear_speed / n
@@ -435,11 +441,8 @@ class TrackingGrasp:
             wait(dt)
             kf.predict(dt)
             res.loop_s.append(time.perf_counter() - w0)
-            slow = (
-                not cfg.use_predictor
-                or float(np.linalg.norm(kf.velocity()[:2])) <= cfg.final_standoff_max_speed
-            )
-            final = cfg.final_standoff if slow else cfg.moving_final_standoff
+            moving = cfg.use_predictor and self._moving(kf.velocity())
+            final = cfg.moving_final_standoff if moving else cfg.final_standoff
             if aligned >= cfg.align_ticks and standoff > final and not lost_close:
                 standoff, aligned = final, 0  # closer, still in view
                 continue
@@ -501,11 +504,7 @@ class TrackingGrasp:
         n = max(int(np.ceil(abs(z0 - zg) / cfg.descend_speed / dt)), 1)
         q_min, q_max = self.robot.arm.q_limits
         n_settle = int(np.ceil(cfg.settle_max / dt))
-        moving = (
-            cfg.use_predictor
-            and kf.initialized
-            and float(np.linalg.norm(kf.velocity()[:2])) > cfg.final_standoff_max_speed
-        )
+        moving = cfg.use_predictor and kf.initialized and self._moving(kf.velocity())
         fraction = (
             cfg.moving_descend_joint_speed_fraction if moving else cfg.descend_joint_speed_fraction
         )
