@@ -93,3 +93,22 @@ def test_bad_inputs():
     bad[0, 0] = np.nan
     with pytest.raises(InvalidInputError):
         delta_T_B(bad, np.eye(4), np.eye(4))
+
+
+def test_repark_motion_returns_the_arm_base_to_its_taught_pose():
+    from mmpa.geometry import se2_compose, se2_inv, se2_to_T
+    from mmpa.missions.mmpa import repark_motion
+
+    rng = np.random.default_rng(3)
+    M = make_T(rpy_to_R(0.0, 0.0, 0.3), [0.2, -0.05, 0.4])  # arm mounting T_base_link_arm_base
+    for _ in range(5):
+        taught = rng.uniform([-2, -2, -np.pi], [2, 2, np.pi])  # base_link at teaching (x, y, th)
+        parked = se2_compose(taught, rng.normal(0, [0.15, 0.15, 0.3]))
+        dT_B = inv(se2_to_T(*parked) @ M) @ (se2_to_T(*taught) @ M)
+        motion = repark_motion(dT_B, M)
+        # closed form: the base_link must move by inv(parked) o taught, in its own frame
+        expect = se2_compose(se2_inv(parked), taught)
+        np.testing.assert_allclose(motion, expect, atol=1e-12)
+        # and after moving, the arm base is where it was taught
+        T_map_B_new = se2_to_T(*se2_compose(parked, motion)) @ M
+        np.testing.assert_allclose(T_map_B_new, se2_to_T(*taught) @ M, atol=1e-12)

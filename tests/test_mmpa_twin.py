@@ -95,6 +95,37 @@ def test_unreachable_sampling_pose_is_refused_before_motion(site1):
     np.testing.assert_allclose(w.arm.joint_positions(), q0, atol=1e-6)
 
 
+def test_path_out_of_reach_reparks_then_hits_the_dot(site1):
+    """A base parked 30 cm behind its taught pose leaves the taught path out of the arm's
+    reach: without a re-park MMPA refuses before any motion; with one (default) the base
+    navigates by the IPE estimate, IPE runs again and the needle still hits the dot."""
+    from mmpa.geometry import se2_compose, se2_to_T
+    from mmpa.missions.mmpa import AutomationConfig
+
+    w = site1.world
+    pose = se2_compose(w.scene.site("1").pose2d, np.array([-0.30, 0.0, 0.0]))
+
+    def park_far():
+        w.reset(site="1", pose2d=pose)
+        site1.parked_pose2d = pose
+        site1.T_map_base_estimate = se2_to_T(*(pose + np.array([0.006, -0.004, 0.003])))
+
+    park_far()
+    res = site1.run_ipe(AutomationConfig(max_reparks=0), execute=False)
+    assert not res.ok and "unreachable" in res.reason and not res.reparks
+    park_far()
+    res = site1.run_ipe(execute=False)
+    assert res.ok, res.reason
+    assert len(res.reparks) == 1 and len(res.ipe_before_repark) == 1
+    # the requested motion is the parking offset (truth: 0.30 m forward, no turn) to ~1 cm
+    np.testing.assert_allclose(res.reparks[0], [0.30, 0.0, 0.0], atol=0.015)
+    truth = site1.parking_truth()
+    assert np.linalg.norm(truth[:3, 3]) < 0.05  # the navigation brought it back within cm
+    row, _ = ipe_rows(res.ipe, truth)
+    assert row["E_t"] < 3e-3 and row["E_R"] < 0.008
+    assert site1.execute(res) < 0.5e-3
+
+
 def test_cli_teach_run_and_missing_task(tmp_path):
     cli = CliRunner()
     db = str(tmp_path / "t.db")

@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from mmpa.errors import ConfigError, UnknownNameError
 from mmpa.geometry import (
     Array,
+    T_to_se2,
     T_to_vec6,
     inv,
     rotation_error,
@@ -87,6 +88,7 @@ class MMPAExperimentConfig(BaseModel):
     # (paper 001's enhanced AMCL reaches ~1 cm)
     localization_sigma: tuple[float, float] = (0.01, float(np.deg2rad(0.5)))
     max_yaw_offset_deg: float = Field(45.0, gt=0)  # redraw parking offsets beyond this
+    repark_staging: float = Field(0.4, ge=0)  # m behind the goal: a re-park's first leg
     beta_per_site: bool = True  # beta 10 at Site 2' as in the paper (else automation.ipe.beta)
     teach: TeachConfig = TeachConfig()
     automation: AutomationConfig = AutomationConfig()
@@ -218,16 +220,10 @@ class TwinSite:
             NavigateConfig,
             laser_pose2d,
             navigate,
-            twin_map,
-            twin_nav_map,
         )
-        from mmpa.navigation.planner import CostMap
 
         w = self.world
-        if not hasattr(self, "_nav"):
-            grid = twin_map(w)
-            self._nav = (grid, CostMap(twin_nav_map(w), NavigateConfig().planner))
-        grid, costmap = self._nav
+        grid, costmap = self._navigation()
         s0 = w.scene.site("0").pose2d
         sx, sth = self.cfg.start_sigma
         w.reset(site="0", pose2d=s0 + self.rng.normal(0, [sx, sx, sth]))
@@ -270,6 +266,57 @@ class TwinSite:
         )
         return off
 
+    def _navigation(self):
+        from mmpa.navigation.mission import NavigateConfig, twin_map, twin_nav_map
+        from mmpa.navigation.planner import CostMap
+
+        if not hasattr(self, "_nav"):
+            w = self.world
+            grid = twin_map(w)
+            self._nav = (grid, CostMap(twin_nav_map(w), NavigateConfig().planner))
+        return self._nav
+
+    def repark(self, motion: Array) -> Array | None:
+        """Re-park by ``motion`` = ``[dx, dy, dtheta]`` (base_link frame) with mmpa's navigation
+        on the ``localizer``'s estimate (initialized at the current estimate), as the robot's
+        navigation stack would: first to a staging pose ``repark_staging`` m behind the goal,
+        then straight in (a differential base that turns in place next to the bench or on the
+        Site 2' bump stalls), to 1 cm / 0.01 rad (IPE measures what is left). Returns the new
+        localization estimate ``T_map_base``."""
+        from mmpa.localization.localizer import make_localizer
+        from mmpa.navigation.mission import NavigateConfig, laser_pose2d, navigate
+
+        w = self.world
+        grid, costmap = self._navigation()
+        est0 = (
+            T_to_se2(self.T_map_base_estimate)
+            if self.T_map_base_estimate is not None
+            else w.truth.base_pose2d()  # no estimate given: the twin's sampled parking
+        )
+        if not hasattr(self, "_repark_rng"):  # its own stream: trials stay as they were
+            self._repark_rng = w.error_model.rng(f"mmpa_repark_{self.site}")
+        loc = make_localizer(self.cfg.localizer, grid, laser_pose2d(w), self._repark_rng)
+        loc.initialize(est0)
+        goal = se2_compose(est0, np.asarray(motion, float))
+        nav = NavigateConfig()
+        f = nav.follower
+        legs = [
+            (se2_compose(goal, np.array([-self.cfg.repark_staging, 0.0, 0.0])), 0.03, 0.05),
+            (goal, 0.01, 0.01),
+        ]
+        res = None
+        for target, pos_tol, yaw_tol in legs:
+            final = f.final.model_copy(update={"pos_tol": pos_tol, "yaw_tol": yaw_tol})
+            cfg = nav.model_copy(update={"follower": f.model_copy(update={"final": final})})
+            res = navigate(w, loc, grid, target, cfg, costmap=costmap)
+        assert res is not None
+        w.base.stop()
+        w.step(0.5)
+        self.parked_pose2d = w.truth.base_pose2d()
+        self.truth_after_repark = self.parking_truth()  # evaluation only
+        self.T_map_base_estimate = se2_to_T(*res.final_estimate)
+        return self.T_map_base_estimate
+
     def parking_truth(self) -> Array:
         """``dT_B*``: maps taught arm-base coordinates to the current ones (4x4)."""
         return inv(self.world.truth.T_map_arm_base()) @ self.taught.T_map_Bo
@@ -291,6 +338,7 @@ class TwinSite:
             cfg=a,
             record_hz=self.taught.task.path.rate_hz if execute else None,
             T_map_base_now=self.T_map_base_estimate,
+            repark=self.repark,
         )
 
     def execute(self, res) -> float:
@@ -461,12 +509,17 @@ def ipe_trials(
                     before = ts.parking_truth()
                 res = ts.run_ipe(a, execute=False)
                 truth = ts.parking_truth()
+                if res.reparks:  # the IPE figures are those of the last park
+                    e_r0, e_t0 = pose_errors(np.eye(4), before)
+                    row["park0_E_t"], row["park0_E_R"] = e_t0, e_r0
+                    before = ts.truth_after_repark
                 r, its = ipe_rows(res.ipe, truth)
                 row.update(offset_row(truth))
                 row.update(r)
                 row["base_drift_mm"] = float(np.linalg.norm((truth - before)[:3, 3]) * 1e3)
                 row["plan_ok"] = res.ok
                 row["reason"] = res.reason
+                row["reparks"] = len(res.reparks)
                 if execute:
                     row["mmpa_mm"] = ts.execute(res) * 1e3 if res.ok else float("nan")
                 rows.append(row)

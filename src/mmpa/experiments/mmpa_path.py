@@ -43,6 +43,7 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             "mmpa_max_mm": m["max"],
             "tmma_mean_mm": t["mean"],
             "success": ok,
+            "reparks": int(sum(x.get("reparks", 0) for x in r)),
         }
     fig = plot_fig10(rows, cfg.sites, ctx.out / "fig10_needle_tips.png")
     report = (
@@ -58,6 +59,13 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             f"- site {r['site']} trial {r['trial']}: {r['reason']}\n"
             for r in rows
             if not r["plan_ok"]
+        )
+        + "".join(
+            f"- site {r['site']} trial {r['trial']}: the adapted path was out of reach "
+            f"(parked {r['park0_E_t'] * 1e3:.0f} mm off): re-parked by navigation on the IPE "
+            f"estimate, then IPE again (now {r['park_E_t'] * 1e3:.0f} mm off)\n"
+            for r in rows
+            if r.get("reparks")
         )
         + f"\n![Fig. 10]({fig})\n"
     )

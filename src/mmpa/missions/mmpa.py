@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.errors import InvalidInputError, MMPAError, UnreachableError
-from mmpa.geometry import Array, inv
+from mmpa.geometry import Array, T_to_se2, inv
 from mmpa.ipe import transform_path
 from mmpa.ipe.loop import IPE, IPEConfig, IPEResult, capture_cloud
 from mmpa.planning import JointPath, PathPlanConfig, plan_joint_path, retime
@@ -36,11 +36,15 @@ __all__ = [
     "TeachConfig",
     "automate",
     "execute_joint_path",
+    "repark_motion",
     "replay_tmma",
     "teach",
 ]
 
 Progress = Callable[[str, float], None]
+#: a re-park request: drive the base by ``[dx, dy, dtheta]`` (m, rad) in its current base_link
+#: frame; returns the new localization estimate ``T_map_base`` (4x4) or None
+Repark = Callable[[Array], "Array | None"]
 #: a demonstration recorder: runs the demonstration, returns (t (M,), q (M, 6), gripper (M,), f)
 Recorder = Callable[[], tuple[Array, Array, Array, float]]
 
@@ -108,6 +112,10 @@ class AutomationConfig(BaseModel):
     plan: PathPlanConfig = PathPlanConfig()
     execute: bool = True
     localization_prior: bool = True  # first IPE view from the base localization (paper: no)
+    # when IPE succeeded but the adapted path is out of the arm's reach (a parking far off),
+    # stow the arm, drive the base by the IPE estimate and run IPE again, at most this often
+    # (paper: no re-park; 0 turns it off). Only with a ``repark`` callback.
+    max_reparks: int = Field(1, ge=0)
 
 
 @dataclass
@@ -123,6 +131,23 @@ class AutomationResult:
     executed: bool = False
     record: tuple[Array, Array] | None = None
     seconds: dict[str, float] = field(default_factory=dict)
+    #: base motions ``[dx, dy, dtheta]`` requested by re-parks, and the IPE results before them
+    reparks: list[Array] = field(default_factory=list)
+    ipe_before_repark: list[IPEResult] = field(default_factory=list)
+
+
+def repark_motion(dT_B: Array, T_base_link_arm_base: Array) -> Array:
+    """Planar base motion that undoes a parking offset: ``[dx, dy, dtheta]`` (m, rad) in the
+    CURRENT base_link frame.
+
+    ``dT_B = inv(T_map_Bk) T_map_Bo`` (eq. 9-10) maps taught arm-base coordinates to the
+    current ones, so the arm base returns to its taught pose when ``T_map_Bk' = T_map_Bk dT_B``;
+    with ``T_bl_B`` the arm's mounting, the base_link moves by
+    ``T_bl_B dT_B inv(T_bl_B)`` (expressed in the current base_link frame), of which the
+    planar part (x, y, yaw) is what a differential base can do.
+    """
+    M = np.asarray(T_base_link_arm_base, dtype=float)
+    return T_to_se2(M @ np.asarray(dT_B, dtype=float) @ inv(M))
 
 
 def automate(
@@ -136,35 +161,61 @@ def automate(
     record_hz: float | None = None,
     progress: Progress | None = None,
     T_map_base_now: Array | None = None,
+    repark: Repark | None = None,
 ) -> AutomationResult:
     """IPE (Fig. 4), eq. 11, IK + time parameterization, execution (§3.2.2-3.2.4).
 
     ``T_map_base_now``: the localization estimate of the current park pose. With
     ``cfg.localization_prior`` it gives IPE its first guess,
-    ``dT_B ~ inv(T_map_base_now T_base_arm) (T_map_base_park T_base_arm)``."""
+    ``dT_B ~ inv(T_map_base_now T_base_arm) (T_map_base_park T_base_arm)``.
+
+    ``repark``: when IPE succeeded but the adapted path is out of reach, the arm goes home and
+    the base is asked to move by :func:`repark_motion` of the estimate; then IPE runs again
+    (at most ``cfg.max_reparks`` times). Nothing runs on the path until a plan succeeded."""
     cfg = cfg or AutomationConfig()
     t0 = time.perf_counter()
-    prior = None
-    if T_map_base_now is not None and cfg.localization_prior:
-        T_ba = robot.T_base_link_arm_base
-        prior = inv(np.asarray(T_map_base_now, float) @ T_ba) @ (task.T_map_base_park @ T_ba)
-    ipe = IPE(robot, cfg.ipe).run(
-        arm, camera, task.q_sample, task.T_arm_base_camera, task.cloud, progress, prior
-    )
-    out = AutomationResult(False, "", ipe, seconds={"ipe": time.perf_counter() - t0})
-    if not ipe.ok or ipe.dT_B is None:
-        out.reason = f"IPE failed: {ipe.reason}"
-        return out
-    T_new = transform_path(ipe.dT_B, task.path.T_arm_base_tool)
-    out.T_arm_base_tool = T_new
-    try:
-        q_path = plan_joint_path(
-            robot.arm, T_new, arm.joint_positions(), robot.gripper.T_flange_tcp, cfg.plan
+    T_ba = robot.T_base_link_arm_base
+    out = AutomationResult(False, "", None, seconds={"ipe": 0.0})
+    while True:
+        prior = None
+        if T_map_base_now is not None and cfg.localization_prior:
+            prior = inv(np.asarray(T_map_base_now, float) @ T_ba) @ (task.T_map_base_park @ T_ba)
+        t_ipe = time.perf_counter()
+        ipe = IPE(robot, cfg.ipe).run(
+            arm, camera, task.q_sample, task.T_arm_base_camera, task.cloud, progress, prior
         )
-        out.joint_path = retime(task.path.t, q_path, robot.arm, cfg.plan)
-    except (UnreachableError, InvalidInputError) as e:
-        out.reason = f"path planning failed: {e}"
-        return out
+        out.seconds["ipe"] += time.perf_counter() - t_ipe
+        out.ipe = ipe
+        if not ipe.ok or ipe.dT_B is None:
+            out.reason = f"IPE failed: {ipe.reason}"
+            return out
+        T_new = transform_path(ipe.dT_B, task.path.T_arm_base_tool)
+        out.T_arm_base_tool = T_new
+        try:
+            q_path = plan_joint_path(
+                robot.arm, T_new, arm.joint_positions(), robot.gripper.T_flange_tcp, cfg.plan
+            )
+            out.joint_path = retime(task.path.t, q_path, robot.arm, cfg.plan)
+            break
+        except UnreachableError as e:
+            out.reason = f"path planning failed: {e}"
+            if repark is None or len(out.reparks) >= cfg.max_reparks:
+                return out
+        except InvalidInputError as e:
+            out.reason = f"path planning failed: {e}"
+            return out
+        motion = repark_motion(ipe.dT_B, T_ba)
+        if progress is not None:
+            progress(
+                f"path out of reach: re-parking by ({motion[0]:+.3f} m, {motion[1]:+.3f} m, "
+                f"{np.rad2deg(motion[2]):+.1f} deg)",
+                0.0,
+            )
+        arm.move_joints(np.asarray(robot.arm.home, dtype=float))
+        out.reparks.append(motion)
+        out.ipe_before_repark.append(ipe)
+        T_map_base_now = repark(motion)
+    out.reason = ""
     out.ok = True
     if cfg.execute:
         out.record = execute_joint_path(
