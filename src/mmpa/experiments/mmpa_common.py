@@ -483,7 +483,8 @@ def ipe_trials(
     """Park / IPE (/ execute, / TMMA) trials; rows per trial and per IPE iteration.
 
     The parking truth is read after IPE (arm motion can nudge the base), the TMMA replay
-    (when asked) runs first from the same parked pose."""
+    (when asked) runs first from the same parked pose. Re-parks (a path out of reach) only
+    when the path is executed: the IPE-only tables are about the first park."""
     sites = sites or cfg.sites
     n = cfg.n_trials()
     rows: list[dict] = []
@@ -493,6 +494,8 @@ def ipe_trials(
         progress(f"site {site}: teaching", done / total)
         with TwinSite(cfg, site, scene) as ts:
             a = automation or ts.automation_config()
+            if not execute:  # IPE-only experiments measure IPE at the first park
+                a = a.model_copy(update={"max_reparks": 0})
             for i in range(n):
                 progress(f"site {site}: trial {i + 1}/{n}", done / total)
                 ts.park()
