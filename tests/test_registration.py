@@ -198,7 +198,7 @@ def test_bad_input_raises() -> None:
         register(src, tgt, CFG, init=np.eye(3))
     with pytest.raises(InvalidInputError, match="rotation"):
         register(src, tgt, CFG, init=np.diag([1.0, 1.0, -1.0, 1.0]))
-    other = CFG.model_copy(update={"coarse_voxel": 0.03})
+    other = CFG.model_copy(update={"coarse_voxel": 0.025})
     with pytest.raises(ConfigError, match="prepared"):
         register(prepare(src, CFG), tgt, other)
     with pytest.raises(ValueError, match="max_depth"):
