@@ -421,7 +421,7 @@ def test_fgr_solve_matches_open3d(decrease_mu: bool) -> None:
     np.testing.assert_allclose(T, np.asarray(ref), atol=1e-9)
     # independent of Open3D: a moved copy, exact pairs plus 20 % random ones
     rng = np.random.default_rng(5)
-    p = rng.uniform(-0.3, 0.3, (500, 3)) + [0.0, 0.0, 0.6]
+    p = rng.uniform(-0.3, 0.3, (500, 3)) + np.array([0.0, 0.0, 0.6])
     Tt = make_T(rpy_to_R(0.05, -0.1, 0.2), [0.04, -0.03, 0.02])
     q = p @ Tt[:3, :3].T + Tt[:3, 3]
     c = np.r_[np.stack([np.arange(400)] * 2, 1), rng.integers(0, 500, (100, 2))]

@@ -46,13 +46,13 @@ class RegistrationConfig(_Frozen):
         ``min_depth``/``max_depth`` crop on the optical axis z (m); ``nan_policy``: drop
         non-finite points (``"filter"``, counted in the diagnostics) or refuse the cloud
         (``"reject"``); every ``presample``-th point is kept (an RGB-D frame is far denser
-        than the finest voxel: 1 mm spacing at 0.6 m; 8 still gives ~6k voxels of 1 cm
-        for a 640x480 frame of the bench); the cloud is voxel-averaged at the finest ICP voxel and cleaned
-        by a statistical outlier filter on that voxel cloud (a voxel whose mean distance to
-        its ``outlier_neighbors`` nearest voxels exceeds the mean by ``outlier_std_ratio``
-        standard deviations is a flying pixel; 0 disables it); normals from
-        ``normal_max_nn`` neighbours within ``normal_radius_factor`` voxels, oriented to the
-        camera. (Presample 8 and 8 neighbours instead of 4 and 12: ~25 % less time for a
+        than the finest voxel: 1 mm spacing at 0.6 m; 8 still gives ~6k voxels of 1 cm for a
+        640x480 frame of the bench); the cloud is voxel-averaged at the finest ICP voxel and
+        cleaned by a statistical outlier filter on that voxel cloud (a voxel whose mean
+        distance to its ``outlier_neighbors`` nearest voxels exceeds the mean by
+        ``outlier_std_ratio`` standard deviations is a flying pixel; 0 disables it); normals
+        from ``normal_max_nn`` neighbours within ``normal_radius_factor`` voxels, oriented to
+        the camera. (Presample 8 and 8 neighbours instead of 4 and 12: ~25 % less time for a
         cold pair, as accurate and as robust on the twin's bench: 70 parking-error pairs at
         Sites 1 and 2, 65-67 registered within 5 mm against 63 before, mean E_t 0.72 vs
         0.76 mm.)

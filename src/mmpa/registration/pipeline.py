@@ -6,10 +6,11 @@ metres), estimate ``T = T_target_source`` such that ``p_t = T p_s`` (paper eq. 3
 target). Stages:
 
 1. ``prepare`` (once per cloud): crop ``z`` to ``[min_depth, max_depth]``, drop non-finite points,
-   voxel-average at the finest ICP voxel, remove statistical outliers and estimate that level's
-   normals from one k-NN search, build the voxel pyramid of the ICP schedule; the normals of
-   the other levels (only the ICP target needs them) and FPFH (Rusu 2009) at the coarse voxel
-   are computed on first use and kept with the cloud (a taught cloud pays for them once).
+   voxel-average at the finest ICP voxel, remove statistical outliers with one k-NN search
+   (kept: it also gives that level's normals), build the voxel pyramid of the ICP schedule;
+   the normals of every level (only the ICP target needs them; the finest from the kept
+   search) and FPFH (Rusu 2009) at the coarse voxel are computed on first use and kept with
+   the cloud (a taught cloud pays for them once, a source cloud never for its normals).
 2. Coarse: Fast Global Registration (Zhou et al. 2016): mutual FPFH matches and the tuple test
    (:func:`fgr_correspondences`, vectorized: one matrix product instead of Open3D's k-d tree
    in 33 dimensions, ~2x faster), then FGR's scaled Geman-McClure objective
