@@ -291,11 +291,9 @@ def prepare(
     stats["n_nonfinite"] = n_bad
     if n_bad and cfg.nan_policy == "reject":
         return _empty(key, f"cloud has {n_bad} non-finite points (nan_policy='reject')", stats)
-    if cfg.presample > 1:
-        pts, finite = pts[:: cfg.presample], finite[:: cfg.presample]
-        cols = None if cols is None else cols[:: cfg.presample]
-    z = pts[:, 2]
-    keep = finite & (z >= cfg.min_depth) & (z <= cfg.max_depth)
+    step = cfg.presample
+    z = pts[::step, 2]
+    keep = finite[::step] & (z >= cfg.min_depth) & (z <= cfg.max_depth)
     stats["n_cropped"] = int(np.count_nonzero(keep))
     if stats["n_cropped"] < cfg.min_points:
         what = f"{stats['n_input']} points" + (f", {n_bad} non-finite" if n_bad else "")
@@ -305,10 +303,13 @@ def prepare(
             f"[{cfg.min_depth}, {cfg.max_depth}] m (need {cfg.min_points})",
             stats,
         )
-    pts = pts[keep]
+    # rows of the contiguous input (a boolean mask on the strided view is ~1.5x slower)
+    rows = np.flatnonzero(keep) * step
+    pts = pts.take(rows, axis=0)
     colored = False
     if cols is not None:
-        cols = np.clip(cols[keep], 0.0, 1.0)
+        cols = cols.take(rows, axis=0)
+        np.clip(cols, 0.0, 1.0, out=cols)
         sample = cols[:: max(1, len(cols) // 5000)]
         colored = bool((sample.std(axis=0) > cfg.min_color_std).any())
     raw = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
