@@ -448,3 +448,17 @@ def test_fine_normals_only_on_use_and_equal_to_the_one_search() -> None:
     np.testing.assert_allclose(np.asarray(P.levels[v].points), np.asarray(fine.points)[keep])
     np.testing.assert_allclose(n, ref, atol=1e-12)
     assert not P.levels[0.02].has_normals()
+
+
+def test_open3d_thread_cap_is_restored_and_changes_nothing() -> None:
+    """``open3d_threads`` caps Open3D's workers only during the call; the pose is the same
+    with Open3D's default threads (up to the order of its parallel sums)."""
+    import open3d as o3d
+
+    src, tgt = _pair(T_TRUE, seed=7)
+    before = o3d.utility.get_max_threads()
+    a = register(src, tgt, CFG)
+    assert CFG.open3d_threads == 1 and o3d.utility.get_max_threads() == before
+    b = register(src, tgt, CFG.model_copy(update={"open3d_threads": None}))
+    _check(a, T_TRUE)
+    np.testing.assert_allclose(a.T, b.T, atol=1e-6)

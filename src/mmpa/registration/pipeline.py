@@ -52,7 +52,7 @@ from scipy.spatial.distance import cdist
 
 from mmpa.errors import ConfigError, InvalidInputError
 from mmpa.geometry import Array
-from mmpa.registration._blas import single_threaded_blas
+from mmpa.registration._blas import open3d_threads, single_threaded_blas
 from mmpa.registration.config import IcpScale, RegistrationConfig
 from mmpa.registration.fgr import fgr_solve
 
@@ -269,6 +269,11 @@ def prepare(
     a :class:`Prepared` with a ``reason`` (``register`` then returns ``ok=False``).
     """
     cfg = cfg or RegistrationConfig()
+    with open3d_threads(cfg.open3d_threads):
+        return _prepare(cloud, cfg, features)
+
+
+def _prepare(cloud: Any, cfg: RegistrationConfig, features: bool) -> Prepared:
     t0 = time.perf_counter()
     key = cfg.preprocessing_key()
     pts = np.asarray(getattr(cloud, "points", None), dtype=float)
@@ -523,6 +528,13 @@ def register(
     from it. The result is always validated; failures return ``ok=False`` with a reason.
     """
     cfg = cfg or RegistrationConfig()
+    with open3d_threads(cfg.open3d_threads):
+        return _register(source, target, cfg, init)
+
+
+def _register(
+    source: Any, target: Any, cfg: RegistrationConfig, init: Array | None
+) -> Registration:
     t0 = time.perf_counter()
     stages: dict[str, Any] = {}
     if init is not None:
