@@ -32,6 +32,8 @@ from mmpa.registration._blas import single_threaded_blas
 __all__ = ["fgr_solve"]
 
 
+#: update (rad, normalised length) below which the line-process iteration has converged
+_STEP_TOL = 1e-13
 _DIAG3 = (np.arange(3), np.arange(3))
 # [v]x = [[0, -v2, v1], [v2, 0, -v0], [-v1, v0, 0]]: its off-diagonal entries in A[:3, 3:]
 _QX = (np.array([0, 0, 1, 1, 2, 2]), np.array([4, 5, 3, 5, 3, 4]))
@@ -72,7 +74,10 @@ def fgr_solve(
 
     ``p_source`` (N, 3), ``p_target`` (M, 3) m: the whole clouds (their means and extent
     normalise the problem, as in Open3D); ``corr`` (K, 2) int pairs ``(source, target)``.
-    Fewer than 10 correspondences give the identity (as Open3D).
+    Fewer than 10 correspondences give the identity (as Open3D). The iteration stops early
+    at a fixed point (every update component below 1e-13, ``mu`` final): Open3D's remaining
+    iterations would not move ``T`` (same result to 1e-14 on the benchmark's pairs, ~3x
+    less time).
     """
     with single_threaded_blas():  # 7 x K products: a second BLAS thread only costs
         return _fgr_solve(
@@ -140,6 +145,10 @@ def _fgr_solve(
         R, t = dR @ R, dR @ t + x[3:]
         if decrease_mu and it % 4 == 0 and par > max_correspondence_distance:
             par /= division_factor
+        elif np.abs(x).max() < _STEP_TOL and (
+            not decrease_mu or par <= max_correspondence_distance
+        ):
+            break  # a fixed point: the remaining iterations would not move T
     # back to metres: T' maps target to source, p_s = R (p_t - mu_t) + D t + mu_s
     T = np.eye(4)
     T[:3, :3] = R.T
