@@ -66,6 +66,9 @@ def open3d_threads(n: int | None) -> Iterator[None]:
     import open3d as o3d
 
     previous = o3d.utility.get_max_threads()
+    if previous == n:  # e.g. prepare inside register: nothing to set or restore
+        yield
+        return
     o3d.utility.set_max_threads(n)
     try:
         yield
