@@ -32,9 +32,12 @@ class IcpScale(_Frozen):
     relative: float = Field(default=1e-4, ge=0)
 
 
+#: from the FGR pose: the 2 cm level takes the large correction; 4 iterations at 1 cm give
+#: the same poses as 8 on the twin's 78 benchmark and parking-error pairs (same E_t to 1 um,
+#: same accepted and refused pairs), ~10 % of a cold registration less
 _COARSE_TO_FINE = (
     IcpScale(voxel=0.02, max_distance=0.03, max_iter=10),
-    IcpScale(voxel=0.01, max_distance=0.012, max_iter=8),
+    IcpScale(voxel=0.01, max_distance=0.012, max_iter=4),
 )
 _NEAR = (IcpScale(voxel=0.01, max_distance=0.012, max_iter=8),)
 
