@@ -198,7 +198,7 @@ def test_bad_input_raises() -> None:
         register(src, tgt, CFG, init=np.eye(3))
     with pytest.raises(InvalidInputError, match="rotation"):
         register(src, tgt, CFG, init=np.diag([1.0, 1.0, -1.0, 1.0]))
-    other = CFG.model_copy(update={"coarse_voxel": 0.03})
+    other = CFG.model_copy(update={"coarse_voxel": 0.025})
     with pytest.raises(ConfigError, match="prepared"):
         register(prepare(src, CFG), tgt, other)
     with pytest.raises(ValueError, match="max_depth"):
@@ -367,3 +367,98 @@ def test_smallest_eigenvector_matches_eigh() -> None:
     np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1.0, atol=1e-12)
     z = np.zeros(1)
     np.testing.assert_array_equal(_smallest_eigenvector(z, z, z, z, z, z), [[0.0, 0.0, 1.0]])
+
+
+def _coarse_pair() -> tuple:
+    """The coarse clouds of a prepared bench pair and their FGR correspondences."""
+    from mmpa.registration.pipeline import _feature_matrix
+
+    src, tgt = _pair(T_TRUE, seed=2)
+    P, Q = prepare(src, CFG), prepare(tgt, CFG)
+    ps, pt = np.asarray(P.coarse.points), np.asarray(Q.coarse.points)
+    corr = fgr_correspondences(
+        _feature_matrix(P, P.fpfh(CFG)),
+        _feature_matrix(Q, Q.fpfh(CFG)),
+        ps,
+        pt,
+        CFG.fgr_max_tuples,
+        CFG.fgr_tuple_scale,
+        np.random.default_rng(0),
+    )
+    return P, Q, corr
+
+
+@pytest.mark.parametrize("decrease_mu", [False, True])
+def test_fgr_solve_matches_open3d(decrease_mu: bool) -> None:
+    """The vectorized FGR solver against Open3D's ``registration_fgr_based_on_correspondence``
+    on the same correspondences (its own tuple test off), with and without graduated
+    non-convexity, and on a rigidly moved copy with 20 % wrong pairs against the truth."""
+    import open3d as o3d
+
+    from mmpa.registration.fgr import fgr_solve
+
+    reg = o3d.pipelines.registration
+    P, Q, corr = _coarse_pair()
+    assert len(corr) > 100
+    dist = CFG.fgr_distance_factor * CFG.coarse_voxel
+    opt = reg.FastGlobalRegistrationOption(
+        maximum_correspondence_distance=dist,
+        iteration_number=CFG.fgr_iterations,
+        tuple_test=False,
+        decrease_mu=decrease_mu,
+    )
+    ref = reg.registration_fgr_based_on_correspondence(
+        P.coarse, Q.coarse, o3d.utility.Vector2iVector(corr), opt
+    ).transformation
+    T = fgr_solve(
+        np.asarray(P.coarse.points),
+        np.asarray(Q.coarse.points),
+        corr,
+        dist,
+        CFG.fgr_iterations,
+        decrease_mu=decrease_mu,
+    )
+    np.testing.assert_allclose(T, np.asarray(ref), atol=1e-9)
+    # independent of Open3D: a moved copy, exact pairs plus 20 % random ones
+    rng = np.random.default_rng(5)
+    p = rng.uniform(-0.3, 0.3, (500, 3)) + np.array([0.0, 0.0, 0.6])
+    Tt = make_T(rpy_to_R(0.05, -0.1, 0.2), [0.04, -0.03, 0.02])
+    q = p @ Tt[:3, :3].T + Tt[:3, 3]
+    c = np.r_[np.stack([np.arange(400)] * 2, 1), rng.integers(0, 500, (100, 2))]
+    T2 = fgr_solve(p, q, c, dist, 64, decrease_mu=True)
+    assert translation_error(Tt, T2) < 2e-4 and rotation_error(Tt, T2) < 1e-3
+    np.testing.assert_array_equal(fgr_solve(p, q, c[:9], dist), np.eye(4))  # < 10 pairs
+
+
+def test_fine_normals_only_on_use_and_equal_to_the_one_search() -> None:
+    """``prepare`` keeps its outlier search; the finest level's normals are computed from it
+    only when the cloud is used as an ICP target, equal to :func:`_clean_and_normals`."""
+    import open3d as o3d
+
+    from mmpa.registration.pipeline import _clean_and_normals
+
+    src, _ = _pair(T_TRUE)
+    P = prepare(src, CFG)
+    v = CFG.fine_voxel
+    assert not P.levels[v].has_normals()
+    n = np.asarray(P.with_normals(v, CFG).normals)
+    raw = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src.points))
+    fine = raw.voxel_down_sample(v)
+    keep, ref = _clean_and_normals(np.asarray(fine.points), v, CFG)
+    np.testing.assert_allclose(np.asarray(P.levels[v].points), np.asarray(fine.points)[keep])
+    np.testing.assert_allclose(n, ref, atol=1e-12)
+    assert not P.levels[0.02].has_normals()
+
+
+def test_open3d_thread_cap_is_restored_and_changes_nothing() -> None:
+    """``open3d_threads`` caps Open3D's workers only during the call; the pose is the same
+    with Open3D's default threads (up to the order of its parallel sums)."""
+    import open3d as o3d
+
+    src, tgt = _pair(T_TRUE, seed=7)
+    before = o3d.utility.get_max_threads()
+    a = register(src, tgt, CFG)
+    assert CFG.open3d_threads == 1 and o3d.utility.get_max_threads() == before
+    b = register(src, tgt, CFG.model_copy(update={"open3d_threads": None}))
+    _check(a, T_TRUE)
+    np.testing.assert_allclose(a.T, b.T, atol=1e-6)

@@ -65,12 +65,15 @@ _PREPARED: list[tuple[PointCloud, tuple, Prepared]] = []
 
 
 def prepared(cloud: PointCloud, cfg: RegistrationConfig) -> Prepared:
-    """``prepare(cloud, cfg)`` with a small cache (a taught cloud is prepared once per task)."""
+    """``prepare(cloud, cfg)`` with a small cache (a taught cloud is prepared once per task).
+
+    FPFH descriptors are left to first use (:meth:`Prepared.fpfh`): only a registration
+    without ``init`` needs them (the final 4 mm refinement never does)."""
     key = cfg.preprocessing_key()
     for c, k, p in _PREPARED:
         if c is cloud and k == key:
             return p
-    p = prepare(cloud, cfg)
+    p = prepare(cloud, cfg, features=False)
     _PREPARED.append((cloud, key, p))
     del _PREPARED[:-6]
     return p
