@@ -289,3 +289,41 @@ def test_reflector_range_unbiased_under_range_noise() -> None:
     err = np.asarray(err)
     assert abs(err.mean()) < 1e-3, err.mean()
     assert 1e-3 < err.std() < 0.015  # noisy, but better than one beam's sigma
+
+
+def test_bearing_errors_stay_put_at_rest_range_errors_average_out(world: SimWorld) -> None:
+    """The premise of ``bearing_sigma_static``, against the TRUE reflectors: parked, a
+    reflector's bearing error (hit/miss edges: within one beam step) is the same scan after
+    scan, its range error (unbiased fit, 15 mm beam noise) is not. Over 20 scans the bearing's
+    per-reflector mean error dominates its scan-to-scan spread (static, ~step/6 = 0.73 mrad),
+    the range's mean is small next to its spread; redundant fixes add the static part."""
+    mount = T_to_se2(world.nominal.lidar.T_base_link_laser)
+    obs = ReflectorObserver(world.map_reflectors, mount)
+    R = world.truth.reflector_positions()
+    world.reset("1")
+    er: dict[int, list[float]] = {}
+    eb: dict[int, list[float]] = {}
+    for _ in range(20):
+        world.step(0.1)
+        obs.observe(world.lidar.scan())
+        det = obs.last_detections
+        T = world.truth.T_map_base_link()
+        d = (R - T[:2, 3]) @ T[:2, :2]
+        for j in range(len(det)):
+            k = int(np.argmin(np.linalg.norm(d - det.points[j], axis=1)))
+            er.setdefault(k, []).append(det.ranges[j] - np.hypot(*d[k]))
+            eb.setdefault(k, []).append(
+                float(np.angle(np.exp(1j * (det.bearings[j] - np.arctan2(d[k, 1], d[k, 0])))))
+            )
+    ks = [k for k in eb if len(eb[k]) == 20]
+    assert len(ks) >= 6
+    b_static = np.sqrt(np.mean([np.mean(eb[k]) ** 2 for k in ks]))
+    b_spread = np.sqrt(np.mean([np.var(eb[k]) for k in ks]))
+    r_static = np.sqrt(np.mean([np.mean(er[k]) ** 2 for k in ks]))
+    r_spread = np.sqrt(np.mean([np.var(er[k]) for k in ks]))
+    assert 0.0002 < b_static < 0.002 and b_spread < 0.5 * b_static, (b_static, b_spread)
+    assert r_static < 0.5 * r_spread and r_static < 0.003, (r_static, r_spread)
+    beams = np.array([4, 9])
+    _, sb = obs.sigmas(beams)
+    _, sb_red = obs.sigmas(beams, redundant=True)
+    np.testing.assert_allclose(sb_red - sb, obs.cfg.bearing_sigma_static)

@@ -133,6 +133,13 @@ class ObserverConfig(BaseModel):
     # base_link (10 % less with the unbiased range fit: normalized RMS 0.39 at 0.0044)
     bearing_sigma_beam: float = Field(0.0035, gt=0)
     bearing_sigma_floor: float = Field(0.0005, ge=0)  # rad
+    # rad, added to the bearing SD of redundant (3+ reflector) fixes only: the hit/miss edges
+    # put a reflector's bearing within an interval of up to one beam step, an error (SD
+    # step/6 = 0.73 mrad) that stays put while the robot stands still, so it does not average
+    # out over the scans the filter fuses at rest; ranges (unbiased fit) do. Weighting bearings
+    # down there lets the position follow the ranges: parked near site 1, 25 scans, 8 poses,
+    # seeds 0/1: 1.54/1.50 mm -> 1.22/1.11 mm. Tracked 2-reflector fixes need their bearings.
+    bearing_sigma_static: float = Field(0.001, ge=0)
     outlier_sigmas: float = Field(3.5, gt=0)  # drop reflectors with larger normalized residual
     min_reflectors: int = Field(3, ge=3)
     # improvement: reflectors cut by something in front of them (a person) are not used; their
@@ -170,15 +177,17 @@ class ReflectorObserver:
         self.last_occluded = 0  # detections of the last scan dropped as occluded
         self.last_status = "none"
 
-    def sigmas(self, beams: np.ndarray) -> tuple[Array, Array]:
+    def sigmas(self, beams: np.ndarray, redundant: bool = False) -> tuple[Array, Array]:
         """Range and bearing SD (m, rad) of reflector centers fitted from ``beams`` (n,) hits:
         ``sigma_r = floor_r + sigma_r_beam / sqrt(k)``, ``sigma_phi = floor_phi +
-        sigma_phi_beam / sqrt(k)`` (the fit averages ``k`` beams)."""
+        sigma_phi_beam / sqrt(k)`` (the fit averages ``k`` beams), plus
+        ``bearing_sigma_static`` for a ``redundant`` (3+ reflector) fix."""
         c = self.cfg
         k = np.sqrt(np.maximum(np.asarray(beams, float), 1.0))
+        static = c.bearing_sigma_static if redundant else 0.0
         return (
             c.range_sigma_floor + c.range_sigma_beam / k,
-            c.bearing_sigma_floor + c.bearing_sigma_beam / k,
+            c.bearing_sigma_floor + static + c.bearing_sigma_beam / k,
         )
 
     def observe(self, scan: LaserScan) -> ReflectorFix | None:
@@ -197,7 +206,7 @@ class ReflectorObserver:
         keep = ident.ids >= 0
         while keep.sum() >= c.min_reflectors:
             k = np.flatnonzero(keep)
-            sr, sb = self.sigmas(det.beams[k])
+            sr, sb = self.sigmas(det.beams[k], redundant=True)
             try:
                 tri = trilaterate(
                     self.landmarks[ident.ids[k]], det.ranges[k], det.bearings[k], sr, sb
@@ -489,7 +498,7 @@ class EnhancedAMCL(AMCL):
         e = self.ecfg
         ids = fix.ids
         beams = fix.beams if fix.beams is not None else np.ones(len(ids))
-        sr, sb = self.observer.sigmas(beams)
+        sr, sb = self.observer.sigmas(beams, redundant=True)
         pose_var = float(np.trace(fix.trilateration.cov[:2, :2])) / 2
         info, vec = landmark_update(
             self._lm_info[ids],
