@@ -263,9 +263,11 @@ class EnhancedConfig(BaseModel):
     # tracked one (reflectors nearly in a line, e.g. along a corridor)
     weak_fix_sd: float = Field(0.01, gt=0)
     # tracked / weak fixes: factor on eq. 3's covariance. The sigma model treats per-reflector
-    # range errors as independent, but the twin's fitted centers are biased per reflector
-    # (measured: +4.3 mm mean, 2-6 mm per landmark); 8 reflectors average that out, 2 do not.
-    # 4 (SD x 2) measured best of 0.25/1/4/6/16/100 (reflector-dropout, seed 1, 10 runs)
+    # errors as independent, but with 2 reflectors what is left of a landmark's survey error
+    # (after ``landmark_refine``, ~1 mm) and the 5 cm map's pull on the sharp laser do not
+    # average out. 4 (SD x 2) measured best of 0.25/1/4/6/16/100 with the old circle fit
+    # (reflector-dropout, seed 1, 10 runs); with the unbiased fit and landmark refinement 1, 2
+    # and 4 are within 0.1 of each other in during/before ratio (seeds 1 and 2)
     track_cov_scale: float = Field(4.0, gt=0)
     # improvement: with < 3 reflectors the laser is weighted with the product-form likelihood
     # field (sharp; Nav2's sum of cubes hardly tells 5 cm apart) on more beams, tempered by
