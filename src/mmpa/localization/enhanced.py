@@ -66,6 +66,14 @@ Interpretations (the paper leaves them open):
   115 mm measured) is fused like a tracked one: sharp laser (the corridor walls pin the lateral
   position), two-stage proposal, injection scaled by ``track_inject_scale``. With Nav2's
   laser field the estimate followed such fixes (113 mm lateral error in the corridor).
+- landmark refinement (improvement, ``landmark_refine``): the map stores SURVEYED reflector
+  positions (the twin: N(0, 2 mm) per axis). At every redundant fix (``landmark_min_reflectors``
+  or more, not weak) each identified reflector's position seen from ``mu_G`` minus its map
+  position observes that landmark's offset from the map's consensus (:func:`landmark_update`,
+  a per-landmark Kalman filter with prior ``N(0, landmark_map_sigma^2 I)``). The refined
+  positions are used only where one or two reflectors carry the pose (tracked fixes, the
+  one-reflector update), where a 4 mm landmark error moves the estimate by ~3 mm; the
+  trilateration of redundant fixes keeps the map's positions, so nothing feeds back.
 - ``update_when_stationary``: reflector fixes also update the filter while the base stands
   still (Nav2 waits for ``update_min_d``); the motion model then adds no noise, and the
   injected particles keep the cloud from collapsing.
@@ -101,6 +109,7 @@ __all__ = [
     "ReflectorFix",
     "ReflectorObserver",
     "gaussian_fit",
+    "landmark_update",
     "log_gauss",
     "orientation_weight",
     "position_weight",
@@ -118,11 +127,19 @@ class ObserverConfig(BaseModel):
     detection: DetectionConfig = DetectionConfig()
     identify: IdentifyConfig = IdentifyConfig()
     range_sigma_beam: float = Field(0.015, gt=0)  # m, lidar range noise per beam
-    range_sigma_floor: float = Field(0.004, ge=0)  # m, map error + fit bias
+    range_sigma_floor: float = Field(0.002, ge=0)  # m, map error (the range fit is unbiased)
     # rad, bearing of one beam's edge (about the angular step, 0.25 deg); measured in the twin:
-    # bearing SD 0.5-0.6 mrad at 8-11 beams per reflector, 1.5-1.7 mrad at 4-5 beams
-    bearing_sigma_beam: float = Field(0.0044, gt=0)
+    # bearing SD 0.5-0.6 mrad at 8-11 beams per reflector, 1.5-1.7 mrad at 4-5 beams; in
+    # base_link (10 % less with the unbiased range fit: normalized RMS 0.39 at 0.0044)
+    bearing_sigma_beam: float = Field(0.0035, gt=0)
     bearing_sigma_floor: float = Field(0.0005, ge=0)  # rad
+    # rad, added to the bearing SD of redundant (3+ reflector) fixes only: the hit/miss edges
+    # put a reflector's bearing within an interval of up to one beam step, an error (SD
+    # step/6 = 0.73 mrad) that stays put while the robot stands still, so it does not average
+    # out over the scans the filter fuses at rest; ranges (unbiased fit) do. Weighting bearings
+    # down there lets the position follow the ranges: parked near site 1, 25 scans, 8 poses,
+    # seeds 0/1: 1.54/1.50 mm -> 1.22/1.11 mm. Tracked 2-reflector fixes need their bearings.
+    bearing_sigma_static: float = Field(0.001, ge=0)
     outlier_sigmas: float = Field(3.5, gt=0)  # drop reflectors with larger normalized residual
     min_reflectors: int = Field(3, ge=3)
     # improvement: reflectors cut by something in front of them (a person) are not used; their
@@ -139,6 +156,7 @@ class ReflectorFix:
     bearings: Array  # (n,) rad in base_link
     trilateration: TrilaterationResult
     detected: int  # reflectors detected (identified or not)
+    beams: np.ndarray | None = None  # (n,) returns per identified reflector
 
     @property
     def pose(self) -> Array:
@@ -159,15 +177,17 @@ class ReflectorObserver:
         self.last_occluded = 0  # detections of the last scan dropped as occluded
         self.last_status = "none"
 
-    def sigmas(self, beams: np.ndarray) -> tuple[Array, Array]:
+    def sigmas(self, beams: np.ndarray, redundant: bool = False) -> tuple[Array, Array]:
         """Range and bearing SD (m, rad) of reflector centers fitted from ``beams`` (n,) hits:
         ``sigma_r = floor_r + sigma_r_beam / sqrt(k)``, ``sigma_phi = floor_phi +
-        sigma_phi_beam / sqrt(k)`` (the fit averages ``k`` beams)."""
+        sigma_phi_beam / sqrt(k)`` (the fit averages ``k`` beams), plus
+        ``bearing_sigma_static`` for a ``redundant`` (3+ reflector) fix."""
         c = self.cfg
         k = np.sqrt(np.maximum(np.asarray(beams, float), 1.0))
+        static = c.bearing_sigma_static if redundant else 0.0
         return (
             c.range_sigma_floor + c.range_sigma_beam / k,
-            c.bearing_sigma_floor + c.bearing_sigma_beam / k,
+            c.bearing_sigma_floor + static + c.bearing_sigma_beam / k,
         )
 
     def observe(self, scan: LaserScan) -> ReflectorFix | None:
@@ -186,7 +206,7 @@ class ReflectorObserver:
         keep = ident.ids >= 0
         while keep.sum() >= c.min_reflectors:
             k = np.flatnonzero(keep)
-            sr, sb = self.sigmas(det.beams[k])
+            sr, sb = self.sigmas(det.beams[k], redundant=True)
             try:
                 tri = trilaterate(
                     self.landmarks[ident.ids[k]], det.ranges[k], det.bearings[k], sr, sb
@@ -199,7 +219,9 @@ class ReflectorObserver:
             res_b = _wrap(np.arctan2(d[:, 1], d[:, 0]) - tri.pose[2] - det.bearings[k]) / sb
             worst = int(np.argmax(np.maximum(np.abs(res_r), np.abs(res_b))))
             if max(abs(res_r[worst]), abs(res_b[worst])) <= c.outlier_sigmas:
-                return ReflectorFix(ident.ids[k], det.ranges[k], det.bearings[k], tri, len(det))
+                return ReflectorFix(
+                    ident.ids[k], det.ranges[k], det.bearings[k], tri, len(det), det.beams[k]
+                )
             keep[k[worst]] = False
         self.last_status = "too_few_consistent"
         return None
@@ -241,9 +263,11 @@ class EnhancedConfig(BaseModel):
     # tracked one (reflectors nearly in a line, e.g. along a corridor)
     weak_fix_sd: float = Field(0.01, gt=0)
     # tracked / weak fixes: factor on eq. 3's covariance. The sigma model treats per-reflector
-    # range errors as independent, but the twin's fitted centers are biased per reflector
-    # (measured: +4.3 mm mean, 2-6 mm per landmark); 8 reflectors average that out, 2 do not.
-    # 4 (SD x 2) measured best of 0.25/1/4/6/16/100 (reflector-dropout, seed 1, 10 runs)
+    # errors as independent, but with 2 reflectors what is left of a landmark's survey error
+    # (after ``landmark_refine``, ~1 mm) and the 5 cm map's pull on the sharp laser do not
+    # average out. 4 (SD x 2) measured best of 0.25/1/4/6/16/100 with the old circle fit
+    # (reflector-dropout, seed 1, 10 runs); with the unbiased fit and landmark refinement 1, 2
+    # and 4 are within 0.1 of each other in during/before ratio (seeds 1 and 2)
     track_cov_scale: float = Field(4.0, gt=0)
     # improvement: with < 3 reflectors the laser is weighted with the product-form likelihood
     # field (sharp; Nav2's sum of cubes hardly tells 5 cm apart) on more beams, tempered by
@@ -268,6 +292,15 @@ class EnhancedConfig(BaseModel):
     refine_fraction: float = Field(0.8, gt=0, le=1)  # share of the particles drawn in stage 2
     refine_inflate: float = Field(2.0, ge=1)  # stage-2 proposal SD / stage-1 posterior SD
     refine_floor: tuple[float, float, float] = (0.002, 0.002, 0.001)  # m, m, rad: SD floor
+    # improvement: the map holds SURVEYED reflector positions (error ~2 mm per axis). While a
+    # redundant fix (>= ``landmark_min_reflectors``, not weak) is available, each landmark's
+    # offset from the fix's consensus is estimated (:func:`landmark_update`) and used where
+    # one or two reflectors carry the pose (tracked fixes, one-reflector updates): there a
+    # 4 mm landmark error moves the estimate by ~3 mm (reflector-dropout, seed 1)
+    landmark_refine: bool = True
+    landmark_map_sigma: float = Field(0.002, gt=0)  # m, prior SD of a surveyed position
+    landmark_min_reflectors: int = Field(4, ge=3)
+    landmark_sigma_min: float = Field(0.0005, gt=0)  # m: posterior SD floor (static errors)
 
     @classmethod
     def paper(cls) -> EnhancedConfig:
@@ -282,7 +315,52 @@ class EnhancedConfig(BaseModel):
             proposal_fraction=0.0,
             partial_laser=False,
             refine=False,
+            landmark_refine=False,
         )
+
+
+def landmark_update(
+    info: Array,
+    vec: Array,
+    pose: Array,
+    landmarks: Array,
+    ranges: Array,
+    bearings: Array,
+    sigma_range: Array,
+    sigma_bearing: Array,
+    pose_var: float,
+    sigma_min: float,
+) -> tuple[Array, Array]:
+    """One information-form Kalman update of landmark offsets (improvement).
+
+    The reflectors seen at ``ranges`` (n,) m and ``bearings`` (n,) rad from ``pose`` (3,)
+    ``[x, y, theta]`` (a redundant fix, computed on the map's positions ``landmarks`` (n, 2))
+    lie at ``o_i = pose (+) (r_i cos b_i, r_i sin b_i)`` in ``map``; the residual
+    ``z_i = o_i - L_i`` observes the landmark's offset ``delta_i`` (true minus surveyed,
+    relative to the fix's consensus frame) with covariance ``R_i = U diag(sigma_r^2,
+    (r sigma_b)^2) U^T + pose_var I`` (``U`` the radial/tangential axes). ``info`` (n, 2, 2)
+    and ``vec`` (n, 2) are each landmark's information matrix ``Lambda`` and vector ``eta``
+    (offset ``delta = Lambda^-1 eta``); returns the updated pair. ``Lambda`` is capped at
+    ``I / sigma_min^2`` (both scaled down together, i.e. older scans are forgotten) so that
+    static per-pose errors of a parked robot do not become certain."""
+    pose = np.asarray(pose, float)
+    a = pose[2] + np.asarray(bearings, float)
+    u = np.stack([np.cos(a), np.sin(a)], axis=1)  # (n, 2) radial, map frame
+    t = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    r = np.asarray(ranges, float)
+    z = pose[:2] + r[:, None] * u - np.asarray(landmarks, float)
+    var_r = np.asarray(sigma_range, float) ** 2 + pose_var
+    var_t = (r * np.asarray(sigma_bearing, float)) ** 2 + pose_var
+    Rinv = (
+        u[:, :, None] * u[:, None, :] / var_r[:, None, None]
+        + t[:, :, None] * t[:, None, :] / var_t[:, None, None]
+    )
+    info = info + Rinv
+    vec = vec + np.einsum("nij,nj->ni", Rinv, z)
+    cap = 1.0 / sigma_min**2
+    top = np.linalg.eigvalsh(info)[:, -1]
+    f = np.where(top > cap, cap / top, 1.0)
+    return info * f[:, None, None], vec * f[:, None]
 
 
 def position_weight(particles: Array, mu: Array, cov: Array | None = None) -> Array:
@@ -399,6 +477,45 @@ class EnhancedAMCL(AMCL):
         self.kidnap_resets = 0
         self.track_status = "none"  # why the last partial tracking fix was (not) made
         self.last_fix_weak = False  # the last fused fix was tracked or weak (weak_fix_sd)
+        # landmark offsets (improvement, landmark_refine): information form, prior N(0, s^2 I)
+        n_lm = len(self.observer.landmarks)
+        self._lm_info = np.tile(np.eye(2) / self.ecfg.landmark_map_sigma**2, (n_lm, 1, 1))
+        self._lm_vec = np.zeros((n_lm, 2))
+
+    @property
+    def landmark_offsets(self) -> Array:
+        """(n, 2) m: estimated true minus surveyed position of each landmark (zeros without
+        ``landmark_refine`` or before a redundant fix)."""
+        return np.linalg.solve(self._lm_info, self._lm_vec[:, :, None])[:, :, 0]
+
+    @property
+    def tracking_landmarks(self) -> Array:
+        """(n, 2) landmark positions used with fewer than three reflectors: the map's, plus
+        :attr:`landmark_offsets` with ``landmark_refine``."""
+        L = self.observer.landmarks
+        return L + self.landmark_offsets if self.ecfg.landmark_refine else L
+
+    def _learn_landmarks(self, fix: ReflectorFix) -> None:
+        """:func:`landmark_update` with a redundant fix (see ``landmark_refine``)."""
+        e = self.ecfg
+        ids = fix.ids
+        beams = fix.beams if fix.beams is not None else np.ones(len(ids))
+        sr, sb = self.observer.sigmas(beams, redundant=True)
+        pose_var = float(np.trace(fix.trilateration.cov[:2, :2])) / 2
+        info, vec = landmark_update(
+            self._lm_info[ids],
+            self._lm_vec[ids],
+            fix.pose,
+            self.observer.landmarks[ids],
+            fix.ranges,
+            fix.bearings,
+            sr,
+            sb,
+            pose_var,
+            e.landmark_sigma_min,
+        )
+        self._lm_info[ids] = info
+        self._lm_vec[ids] = vec
 
     def _laser_weights(self, scan: LaserScan, partial: bool) -> Array:
         """Laser likelihood of every particle: Nav2's likelihood field, or with ``partial`` (and
@@ -493,8 +610,9 @@ class EnhancedAMCL(AMCL):
             return None
         det = self.observer.last_detections
         c = self.observer.cfg
+        LM = self.tracking_landmarks
         # rigid check (a two-point "triangle match"): detected and map distances must agree
-        P, L = det.points[di], self.observer.landmarks[li]
+        P, L = det.points[di], LM[li]
         i, j = np.triu_indices(len(di), 1)
         dd = np.abs(np.linalg.norm(P[i] - P[j], axis=1) - np.linalg.norm(L[i] - L[j], axis=1))
         if dd.max() > self.ecfg.track_pair_tol:
@@ -502,9 +620,7 @@ class EnhancedAMCL(AMCL):
             return None
         sr, sb = self.observer.sigmas(det.beams[di])
         try:
-            tri = trilaterate(
-                self.observer.landmarks[li], det.ranges[di], det.bearings[di], sr, sb, initial=pose
-            )
+            tri = trilaterate(LM[li], det.ranges[di], det.bearings[di], sr, sb, initial=pose)
         except (ValueError, np.linalg.LinAlgError):
             self.track_status = "degenerate"
             return None
@@ -515,14 +631,14 @@ class EnhancedAMCL(AMCL):
             self.track_status = "turn"
             return None
         # consistency: every reflector within outlier_sigmas of the refined pose
-        d = self.observer.landmarks[li] - tri.pose[:2]
+        d = LM[li] - tri.pose[:2]
         res_r = (np.linalg.norm(d, axis=1) - det.ranges[di]) / sr
         res_b = _wrap(np.arctan2(d[:, 1], d[:, 0]) - tri.pose[2] - det.bearings[di]) / sb
         if max(np.abs(res_r).max(), np.abs(res_b).max()) > c.outlier_sigmas:
             self.track_status = "inconsistent"
             return None
         self.track_status = "ok"
-        return ReflectorFix(li, det.ranges[di], det.bearings[di], tri, len(det))
+        return ReflectorFix(li, det.ranges[di], det.bearings[di], tri, len(det), det.beams[di])
 
     def _partial_update(
         self, odom_pose: Array, scan: LaserScan, force: bool
@@ -550,7 +666,7 @@ class EnhancedAMCL(AMCL):
                 return None
         self.predict(odom_pose)
         det = self.observer.last_detections
-        L = self.observer.landmarks[li]
+        L = self.tracking_landmarks[li]
         k = round(e.partial_proposal_fraction * len(self.particles))
         if k > 0:
             idx = self.rng.choice(len(self.particles), k, replace=False)
@@ -640,7 +756,16 @@ class EnhancedAMCL(AMCL):
         # (a corridor: lateral SD up to ~60 mm), is weak; the sharp laser, the two-stage
         # proposal and the scaled-down injection of the tracked case then apply
         fix_sd = float(np.sqrt(np.linalg.eigvalsh(fix.trilateration.cov[:2, :2]).max()))
-        tracked = tracked or (e.track_partial and fix_sd > e.weak_fix_sd)
+        weak = e.track_partial and fix_sd > e.weak_fix_sd
+        if (
+            e.landmark_refine
+            and not (tracked or weak)
+            and gate == "ok"
+            and fix.trilateration.n >= e.landmark_min_reflectors
+        ):
+            self._learn_landmarks(fix)
+        lm_fix = (self.tracking_landmarks if tracked else self.observer.landmarks)[fix.ids]
+        tracked = tracked or weak
         self.last_fix_weak = tracked
         cov = None
         if e.position_metric == "trilateration":
@@ -668,7 +793,7 @@ class EnhancedAMCL(AMCL):
         self._apply_weights(p)  # keeps w_slow / w_fast bookkeeping of AMCL
         d = position_weight(self.particles, mu, cov)  # eq. 3 (line 14)
         s = orientation_weight(
-            self.particles, self.observer.landmarks[fix.ids], fix.bearings, e.bearing_sigma
+            self.particles, lm_fix, fix.bearings, e.bearing_sigma
         )  # eq. 4 (line 15)
         if e.fusion == "paper":
             w_new = e.alpha * s * omega + e.beta * d  # eq. 6 (line 16)
@@ -681,7 +806,7 @@ class EnhancedAMCL(AMCL):
             w_new = w_new / total  # line 19
         self.weights = w_new
         if refine:  # improvement: two-stage proposal (see _partial_update)
-            lm_fix, b_fix = self.observer.landmarks[fix.ids], fix.bearings
+            b_fix = fix.bearings
             floor = e.position_weight_floor * _EQ3_NORM
 
             def tracked_loglik(P: Array) -> Array:
