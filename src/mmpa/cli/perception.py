@@ -19,6 +19,20 @@ def _log(msg: str) -> None:
     console.file.flush()
 
 
+def _weights(text: str) -> dict[str, float]:
+    """``"dark=1,normal=1,high=2"`` -> ``{"dark": 1.0, "normal": 1.0, "high": 2.0}``."""
+    out: dict[str, float] = {}
+    for part in text.split(","):
+        k, sep, v = part.partition("=")
+        try:
+            out[k.strip()] = float(v)
+        except ValueError:
+            sep = ""
+        if not sep:
+            raise typer.BadParameter(f"expected name=weight[,name=weight...], got {text!r}")
+    return out
+
+
 @perception_app.command("dataset")
 def dataset_cmd(
     out: Annotated[Path, typer.Option(help="output .npz")],
@@ -30,6 +44,12 @@ def dataset_cmd(
     exact_lighting: Annotated[
         bool, typer.Option(help="working views at the twin's exact dark/normal/high factors")
     ] = False,
+    work_servo_prob: Annotated[
+        float, typer.Option(help="fraction of the working views taken from the servo's approach")
+    ] = 0.0,
+    lighting: Annotated[
+        str | None, typer.Option(help="weights per condition, e.g. dark=1,normal=1,high=2")
+    ] = None,
 ) -> None:
     """Render a labelled data set in the twin."""
     try:
@@ -40,6 +60,8 @@ def dataset_cmd(
             seed=seed,
             work_view_prob=work_view_prob,
             work_exact_lighting=exact_lighting,
+            work_servo_prob=work_servo_prob,
+            **({"lighting": _weights(lighting)} if lighting else {}),
         )
         ds = render_dataset(cfg, log=_log)
         save_dataset(ds, out)
