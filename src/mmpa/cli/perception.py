@@ -136,7 +136,9 @@ def train_cmd(
 @perception_app.command("prune")
 def prune_cmd(
     out: Annotated[Path, typer.Option(help="pruned weights file to write (.pt)")],
-    data: Annotated[Path, typer.Option(help="training .npz (fine-tuning and validation)")],
+    data: Annotated[
+        list[Path], typer.Option(help="training .npz, repeatable (fine-tuning and validation)")
+    ],
     weights: Annotated[Path | None, typer.Option(help="weights (default: shipped)")] = None,
     target: Annotated[float, typer.Option(help="keep this fraction of the MACs")] = 0.5,
     short_term_batches: Annotated[int, typer.Option()] = 4,
@@ -148,12 +150,12 @@ def prune_cmd(
         from mmpa.perception import require_torch
 
         require_torch()
-        from mmpa.perception.dataset import load_dataset
+        from mmpa.perception.dataset import Dataset, load_dataset
         from mmpa.perception.prune import PruneConfig, macs, netadapt
         from mmpa.perception.ssd import Detector
 
         det = Detector.load(weights)
-        ds = load_dataset(data)
+        ds = Dataset.concat([load_dataset(p) for p in data])
         cfg = PruneConfig(
             target_ratio=target,
             short_term_batches=short_term_batches,
@@ -166,6 +168,8 @@ def prune_cmd(
             model,
             {
                 "pruned_from": str(weights or "shipped"),
+                "data": [str(p) for p in data],
+                "prune_config": cfg.model_dump(mode="json"),
                 "macs_ratio": macs(model.cfg) / m0,
                 "steps": [[s.layer, list(s.channels), s.macs, s.val_loss] for s in steps],
             },
