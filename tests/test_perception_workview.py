@@ -124,3 +124,41 @@ def test_mobile_manipulation_one_run(tmp_path):
     for k in ("navigation", "detected", "grasped", "desk_found"):
         assert isinstance(row[k], bool)
     assert (tmp_path / "report.md").read_text().count("tennis_ball") >= 1
+
+
+def test_servo_views_put_the_tcp_above_the_target_in_the_simulator():
+    """Servo views (the tracking grasp's approach): after the arm takes the configuration,
+    the simulator's TCP lies ``standoff`` in range above the target's top, within the jitter
+    sideways, tool z pointing down; rendered servo views label the target."""
+    from mmpa.perception.dataset import (
+        DESK_PARK,
+        _footprint,
+        random_table_scene,
+        servo_view_configuration,
+    )
+    from mmpa.sim.world import SimWorld
+
+    cfg = DatasetConfig(work_servo_standoff=(0.15, 0.25), work_servo_jitter=0.02)
+    rng = np.random.default_rng(7)
+    with SimWorld(site="0") as world:
+        world.reset(pose2d=np.array(DESK_PARK), settle=0.0)
+        for name in ("yida_bottle", "tennis_ball", "cube"):
+            random_table_scene(world, rng, [name], [], region=(-0.1, 0.1, -0.15, 0.0))
+            q = servo_view_configuration(world, rng, cfg, name)
+            world.set_arm_configuration(q)
+            T_tcp = world.truth.T_map_tcp()
+            p_obj = world.truth.T_map_object(name)[:3, 3]
+            top = p_obj[2] + _footprint(world, name)[1]
+            d = T_tcp[:3, 3] - np.array([p_obj[0], p_obj[1], top])
+            # nominal IK on the true robot: a few mm of kinematic error allowed
+            assert 0.15 - 0.005 < d[2] < 0.25 + 0.005
+            assert np.all(np.abs(d[:2]) < 0.02 * np.sqrt(2) + 0.005)
+            assert T_tcp[:3, 2] @ np.array([0.0, 0.0, -1.0]) > 0.999
+    servo = render_dataset(
+        DatasetConfig(
+            n_images=3, seed=12, work_view_prob=1.0, work_servo_prob=1.0, lighting={"high": 1}
+        )
+    )
+    assert np.all(servo.lighting == 2)
+    for lab, t in zip(servo.labels, servo.target, strict=True):
+        assert t in lab

@@ -19,6 +19,20 @@ def _log(msg: str) -> None:
     console.file.flush()
 
 
+def _weights(text: str) -> dict[str, float]:
+    """``"dark=1,normal=1,high=2"`` -> ``{"dark": 1.0, "normal": 1.0, "high": 2.0}``."""
+    out: dict[str, float] = {}
+    for part in text.split(","):
+        k, sep, v = part.partition("=")
+        try:
+            out[k.strip()] = float(v)
+        except ValueError:
+            sep = ""
+        if not sep:
+            raise typer.BadParameter(f"expected name=weight[,name=weight...], got {text!r}")
+    return out
+
+
 @perception_app.command("dataset")
 def dataset_cmd(
     out: Annotated[Path, typer.Option(help="output .npz")],
@@ -30,6 +44,12 @@ def dataset_cmd(
     exact_lighting: Annotated[
         bool, typer.Option(help="working views at the twin's exact dark/normal/high factors")
     ] = False,
+    work_servo_prob: Annotated[
+        float, typer.Option(help="fraction of the working views taken from the servo's approach")
+    ] = 0.0,
+    lighting: Annotated[
+        str | None, typer.Option(help="weights per condition, e.g. dark=1,normal=1,high=2")
+    ] = None,
 ) -> None:
     """Render a labelled data set in the twin."""
     try:
@@ -40,6 +60,8 @@ def dataset_cmd(
             seed=seed,
             work_view_prob=work_view_prob,
             work_exact_lighting=exact_lighting,
+            work_servo_prob=work_servo_prob,
+            **({"lighting": _weights(lighting)} if lighting else {}),
         )
         ds = render_dataset(cfg, log=_log)
         save_dataset(ds, out)
@@ -114,7 +136,9 @@ def train_cmd(
 @perception_app.command("prune")
 def prune_cmd(
     out: Annotated[Path, typer.Option(help="pruned weights file to write (.pt)")],
-    data: Annotated[Path, typer.Option(help="training .npz (fine-tuning and validation)")],
+    data: Annotated[
+        list[Path], typer.Option(help="training .npz, repeatable (fine-tuning and validation)")
+    ],
     weights: Annotated[Path | None, typer.Option(help="weights (default: shipped)")] = None,
     target: Annotated[float, typer.Option(help="keep this fraction of the MACs")] = 0.5,
     short_term_batches: Annotated[int, typer.Option()] = 4,
@@ -126,12 +150,12 @@ def prune_cmd(
         from mmpa.perception import require_torch
 
         require_torch()
-        from mmpa.perception.dataset import load_dataset
+        from mmpa.perception.dataset import Dataset, load_dataset
         from mmpa.perception.prune import PruneConfig, macs, netadapt
         from mmpa.perception.ssd import Detector
 
         det = Detector.load(weights)
-        ds = load_dataset(data)
+        ds = Dataset.concat([load_dataset(p) for p in data])
         cfg = PruneConfig(
             target_ratio=target,
             short_term_batches=short_term_batches,
@@ -144,6 +168,8 @@ def prune_cmd(
             model,
             {
                 "pruned_from": str(weights or "shipped"),
+                "data": [str(p) for p in data],
+                "prune_config": cfg.model_dump(mode="json"),
                 "macs_ratio": macs(model.cfg) / m0,
                 "steps": [[s.layer, list(s.channels), s.macs, s.val_loss] for s in steps],
             },

@@ -18,6 +18,12 @@ Two kinds of viewpoint:
   go through the robot's own camera (640x480, the reference noise model) and the detector's
   downsampling (:func:`mmpa.perception.ssd.to_input`), exactly as the robot sees them; the
   target's class is stored per image (``Dataset.target``, -1 for random views).
+  A fraction ``work_servo_prob`` of the working views are *servo views* instead: the views
+  of the tracking grasp's approach, the tool pointing down ``work_servo_standoff`` above the
+  target's top (the tracking and final standoffs lie in this range), offset laterally by up
+  to ``work_servo_jitter`` and turned to a random yaw; the camera sits beside the tool axis,
+  so the target appears off-center, often cut by the lower image border (where the servo
+  sees it: detections flickering there lost the track in high light).
 
 This module drives the simulator (it is a data generator, like an operator), so it imports
 ``mmpa.sim`` lazily; the detector itself never does.
@@ -50,6 +56,7 @@ __all__ = [
     "render_dataset",
     "sample_view",
     "save_dataset",
+    "servo_view_configuration",
 ]
 
 # Robot parked in front of the grasp desk (map): facing +y, 0.4 m from the desk's near edge.
@@ -79,6 +86,9 @@ class DatasetConfig(BaseModel):
     work_exact_lighting: bool = False  # working views at the twin's exact condition factors
     work_base_jitter: tuple[float, float, float] = (0.05, 0.03, 0.05)  # the grasp experiment's
     work_look_jitter: float = Field(0.03, ge=0)  # m, look target jitter in x and y
+    work_servo_prob: float = Field(0.0, ge=0, le=1)  # of the working views: servo views
+    work_servo_standoff: tuple[float, float] = (0.14, 0.30)  # m, TCP above the target's top
+    work_servo_jitter: float = Field(0.03, ge=0)  # m, TCP offset from the target in x and y
 
 
 @dataclass
@@ -394,10 +404,17 @@ def _work_view_sample(
     _place_in_region(world, rng, objs[0], placed, REGION)
     _, top, _ = desk_frame(world)
     rb = world.nominal
-    look = np.array([*(np.array(LOOK_TARGET) + rng.uniform(-1, 1, 2) * cfg.work_look_jitter), 0.0])
-    look[2] = top - rb.T_base_link_arm_base[2, 3]
+    # (no draw without servo views: working-view data sets keep their old streams)
+    servo = cfg.work_servo_prob > 0 and bool(rng.random() < cfg.work_servo_prob)
     try:
-        q = look_configuration(rb, look, LOOK_HEIGHT)
+        if servo:
+            q = servo_view_configuration(world, rng, cfg, objs[0])
+        else:
+            look = np.array(
+                [*(np.array(LOOK_TARGET) + rng.uniform(-1, 1, 2) * cfg.work_look_jitter), 0.0]
+            )
+            look[2] = top - rb.T_base_link_arm_base[2, 3]
+            q = look_configuration(rb, look, LOOK_HEIGHT)
     except Exception:
         return None
     world.set_arm_configuration(q)
@@ -411,6 +428,38 @@ def _work_view_sample(
     b, lab = boxes_from_segmentation(seg, body_ids, round(cfg.min_pixels * sx * sy))
     b = b / np.array([sx, sy, sx, sy], np.float32)
     return Sample(img, b.astype(np.float32), lab, LIGHTING_CONDITIONS.index(cond))
+
+
+def servo_view_configuration(
+    world: SimWorld, rng: np.random.Generator, cfg: DatasetConfig, name: str
+) -> Array:
+    """Joint angles (6,) of a servo view of ``name`` (module doc): the TCP at
+    ``p_top + (dx, dy, s)`` in ``arm_base`` with ``dx, dy ~ U(-j, j)`` (``j =
+    cfg.work_servo_jitter``), ``s ~ U(cfg.work_servo_standoff)``, the tool z pointing down and
+    the tool x at a yaw ``~ U(-pi, pi)``; ``p_top`` is the object's origin raised by its rest
+    height (the top of an upright object). Nominal IK nearest the first view's configuration;
+    raises :class:`mmpa.errors.UnreachableError` (or another IK error) when out of reach."""
+    from mmpa.robot.kinematics import ik_nearest
+
+    rb = world.nominal
+    _, h = _footprint(world, name)
+    T_map_arm = world.truth.T_map_arm_base()
+    p = (inv(T_map_arm) @ world.truth.T_map_object(name))[:3, 3] + np.array([0.0, 0.0, h])
+    j = cfg.work_servo_jitter
+    p_tcp = p + np.array([*(rng.uniform(-1, 1, 2) * j), rng.uniform(*cfg.work_servo_standoff)])
+    yaw = rng.uniform(-np.pi, np.pi)
+    x = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+    z = np.array([0.0, 0.0, -1.0])
+    T_arm_tcp = make_T(np.column_stack([x, np.cross(z, x), z]), p_tcp)
+    T_arm_flange = T_arm_tcp @ inv(rb.gripper.T_flange_tcp)
+    q_min, q_max = rb.arm.q_limits
+    from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET
+    from mmpa.servo.grasp import look_configuration
+
+    _, top, _ = desk_frame(world)
+    look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])
+    q_ref = look_configuration(rb, look, LOOK_HEIGHT)  # the servo's branch
+    return ik_nearest(rb.arm.dh, T_arm_flange, q_ref, q_min, q_max)
 
 
 def _place_in_region(
