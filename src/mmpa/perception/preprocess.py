@@ -11,9 +11,9 @@ whole (mean luminance 105-150 of 255 on the grasp experiment's first views, the 
 dark) but the white bottle tops and sticks clip at 255 (60-98 % of the target's pixels), which
 no global rescaling restores. Measured on the 80 high-light first views of the yida bottle,
 water bottle, glue stick and blue stick (``mmpa experiment grasp`` seed 0 scenes), the
-target's class detected at the operating threshold by the previous ``ssd.pt``: 74/80 as
+target's class detected at the operating threshold by ``ssd.pt``: 74/80 as
 captured, 73-74/80 after a gain or gamma to a mean luminance of 80-100, 76/80 after gamma to
-80; the detector fine-tuned on high-light working and servo views (``mmpa.perception`` doc)
+80; ``ssd_workview.pt`` (fine-tuned on high-light working and servo views, ``mmpa.perception``)
 finds 77/80 as captured (78/80 with that gamma: within the noise, so no preprocessing step).
 """
 
