@@ -20,6 +20,7 @@ from pydantic import BaseModel, Field
 
 from mmpa.experiments.runner import Context, Outcome, markdown_table
 from mmpa.perception import CLASSES, LIGHTING_CONDITIONS
+from mmpa.servo.grasp import GraspConfig
 
 PAPER = "paper 001 Table 3 (success rate per object and light condition, 20 trials each)"
 
@@ -55,6 +56,7 @@ class Config(BaseModel):
     others: int = 2  # other objects on the desk besides the target
     max_time: float = 15.0  # s of simulated time per attempt
     threads: int = 1  # torch threads of the detector
+    servo: GraspConfig = Field(default_factory=GraspConfig)  # the tracking grasp's settings
 
     def n_trials(self) -> int:
         return 20 if self.trials is None else self.trials
@@ -350,7 +352,7 @@ class OracleDetector:
 def make_grasper(cfg: Any, world: Any = None) -> Any:
     from mmpa.perception.ssd import Detector
     from mmpa.robot.description import default_robot
-    from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+    from mmpa.servo.grasp import TrackingGrasp
 
     if cfg.weights == "oracle":
         det = OracleDetector(world)
@@ -359,10 +361,12 @@ def make_grasper(cfg: Any, world: Any = None) -> Any:
 
         torch.set_num_threads(getattr(cfg, "threads", 1))
         det = Detector.load(cfg.weights)
-    gc = GraspConfig(
-        preprocess_dark=cfg.preprocess_dark,
-        use_predictor=cfg.use_predictor,
-        max_time=getattr(cfg, "max_time", 15.0),
+    gc = (getattr(cfg, "servo", None) or GraspConfig()).model_copy(
+        update={
+            "preprocess_dark": cfg.preprocess_dark,
+            "use_predictor": cfg.use_predictor,
+            "max_time": getattr(cfg, "max_time", 15.0),
+        }
     )
     return TrackingGrasp(det, default_robot(), gc)
 

@@ -19,6 +19,7 @@ from pydantic import BaseModel, Field
 from mmpa.experiments.grasp import Config as GraspExperimentConfig
 from mmpa.experiments.grasp import grasp_trial, make_grasper
 from mmpa.experiments.runner import Context, Outcome, markdown_table
+from mmpa.servo.grasp import GraspConfig
 
 PAPER = "paper 001 §4.3.3 (tracking grasp of a moving object; works below 0.1 m/s)"
 PAPER_LIMIT = 0.1  # m/s
@@ -35,6 +36,7 @@ class Config(BaseModel):
     preprocess_dark: bool = False
     others: int = 1
     max_time: float = 15.0  # s of simulated time per attempt
+    servo: GraspConfig = Field(default_factory=GraspConfig)  # the tracking grasp's settings
 
     def n_trials(self) -> int:
         return 10 if self.trials is None else self.trials
@@ -53,6 +55,7 @@ def run(cfg: Config, ctx: Context) -> Outcome:
                 preprocess_dark=cfg.preprocess_dark,
                 use_predictor=pred,
                 max_time=cfg.max_time,
+                servo=cfg.servo,
             )
             grasper = make_grasper(gcfg, world)
             for speed in cfg.speeds:

@@ -91,6 +91,16 @@ class GraspConfig(BaseModel):
     descend_joint_speed_fraction: float = Field(0.6, gt=0, le=1)
     moving_descend_joint_speed_fraction: float = Field(0.9, gt=0, le=1)
     arm_lag: float = Field(0.03, ge=0)  # s, set-point to TCP (latency compensation)
+    # improvement: for a moving object the descent keeps detecting at ``rate_hz`` and updates
+    # the predictor while the TCP is more than ``descend_update_height`` m above the grasp
+    # height (a turn during the descent is seen). Tracking at 0.2 m/s, 20 trials x seeds
+    # 0/1/2: blind descent 0.80/0.60/0.65, updates 0.90/0.75/0.85. Boxes at the image border
+    # count too although the located point drifts toward the camera there (13 mm at 90 % of
+    # the height): keeping ``descend_update_margin`` of the image clear measured worse
+    # (0.01: 0.80 pooled; 0.08: 0.67; 0.15: 0.70 on seed 0 against 0.83 at 0)
+    descend_updates: bool = True
+    descend_update_height: float = Field(0.05, ge=0)
+    descend_update_margin: float = Field(0.0, ge=0, lt=0.5)  # fraction of width / height
     close_delay: float = Field(0.0, ge=0)  # s from the arrival to closing
     settle_tol: float = Field(0.006, gt=0)  # m: the TCP this near the grasp height = arrived
     settle_max: float = Field(0.3, ge=0)  # s waited at most for the arrival
@@ -451,7 +461,9 @@ class TrackingGrasp:
                 if on_event:
                     on_event("descend")
                 try:
-                    q_cmd = self._descend(arm, q_cmd, kf, p_meas, top_z, desk_z, yaw, wait)
+                    q_cmd = self._descend(
+                        arm, q_cmd, kf, p_meas, top_z, desk_z, yaw, wait, camera, name
+                    )
                 except (UnreachableError, MMPAError):
                     res.reason = "unreachable"
                     break
@@ -489,11 +501,15 @@ class TrackingGrasp:
         desk_z: float,
         yaw: float | None,
         wait: Callable[[float], None],
+        camera: Any = None,
+        name: str | None = None,
     ) -> Array:
-        """Blind descent of the TCP to the grasp height (:func:`grasp_height`) at
+        """Descent of the TCP to the grasp height (:func:`grasp_height`) at
         ``descend_speed``, set-points at ``descend_rate_hz``. Horizontally the TCP follows the
         object: each set-point is the predicted position ``arm_lag`` s after it is sent
-        (latency compensation); without the predictor, the last measured position."""
+        (latency compensation); without the predictor, the last measured position. For a
+        moving object with ``descend_updates`` (and a ``camera``) the predictor keeps taking
+        detections at ``rate_hz`` on the upper part of the descent."""
         cfg = self.cfg
         dh = self.robot.arm.dh
         dt = 1.0 / cfg.descend_rate_hz
@@ -510,7 +526,14 @@ class TrackingGrasp:
         )
         qd_descend = np.asarray(self.robot.arm.qd_max) * fraction
         q_ik = q_cmd  # the IK branch followed (the set-point may lag it at the speed limits)
+        look = moving and cfg.descend_updates and camera is not None and name is not None
+        every = max(1, round(cfg.descend_rate_hz / cfg.rate_hz))
         for k in range(1, n + 1 + n_settle):
+            if look and k % every == 0 and k <= n:
+                q_now = np.asarray(arm.joint_positions(), float)
+                z_now = fk(dh, q_now, self._T_ft)[2, 3]
+                if z_now - zg > cfg.descend_update_height:
+                    self._descent_update(camera, name, q_now, kf)
             if k > n:  # arrived? (encoders, nominal kinematics): close as soon as it is there
                 z_meas = fk(dh, np.asarray(arm.joint_positions(), float), self._T_ft)[2, 3]
                 if abs(z_meas - zg) < cfg.settle_tol:
@@ -533,6 +556,21 @@ class TrackingGrasp:
         if cfg.close_delay > 0:
             wait(cfg.close_delay)
         return q_cmd
+
+    def _descent_update(self, camera: Any, name: str, q: Array, kf: ConstantVelocityKF) -> None:
+        """One detection during the descent: the predictor takes it when the box keeps
+        ``descend_update_margin`` of the image clear and lies within the gate."""
+        frame = camera.capture()
+        det, meas = self._measure(frame, name, q, kf)
+        if meas is None or det is None:
+            return
+        h, w = frame.color.shape[:2]
+        x1, y1, x2, y2 = det.box
+        m = self.cfg.descend_update_margin
+        if min(x1 / w, y1 / h) < m or max(x2 / w, y2 / h) > 1.0 - m:
+            return
+        if np.linalg.norm(meas.p - kf.position()) <= self.cfg.predictor.gate:
+            kf.update(meas.p)
 
     def _lift(self, arm: Any, q_cmd: Array) -> None:
         dh = self.robot.arm.dh
