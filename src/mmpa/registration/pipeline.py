@@ -128,12 +128,11 @@ class Prepared:
         done = self._cache.setdefault("normals", set())
         if voxel not in done:
             t0 = time.perf_counter()
-            knn = self._cache.pop("fine_knn", None)
+            knn = self._cache.get("fine_knn")
             if knn is not None and knn[0] == voxel:  # from prepare's outlier search
+                del self._cache["fine_knn"]  # used once: the normals are kept on the cloud
                 pc.normals = o3d.utility.Vector3dVector(_knn_normals(*knn[1:], voxel, cfg))
             else:
-                if knn is not None:
-                    self._cache["fine_knn"] = knn
                 _normals(pc, voxel, cfg)
             done.add(voxel)
             self.stats["normals_s"] = self.stats.get("normals_s", 0.0) + time.perf_counter() - t0

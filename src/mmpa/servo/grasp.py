@@ -97,7 +97,8 @@ class GraspConfig(BaseModel):
     # 0/1/2: blind descent 0.80/0.60/0.65, updates 0.90/0.75/0.85. Boxes at the image border
     # count too although the located point drifts toward the camera there (13 mm at 90 % of
     # the height): keeping ``descend_update_margin`` of the image clear measured worse
-    # (0.01: 0.80 pooled; 0.08: 0.67; 0.15: 0.70 on seed 0 against 0.83 at 0)
+    # (pooled over the seeds 0.01: 0.80, 0.08: 0.67 against 0.83 at 0; 0.15 on seed 0:
+    # 0.70 against 0.90)
     descend_updates: bool = True
     descend_update_height: float = Field(0.05, ge=0)
     descend_update_margin: float = Field(0.0, ge=0, lt=0.5)  # fraction of width / height
