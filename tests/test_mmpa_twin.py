@@ -176,7 +176,7 @@ def test_site2_prime_parking_tilts_like_table2(tmp_path):
     onto the bump (the old placement: tz -63 mm, pitch 5.7 deg)."""
     from mmpa.experiments.runner import run_experiment
 
-    out = run_experiment("parking", tmp_path, trials=12, overrides=["sites=[\"2'\"]"])
+    out = run_experiment("parking", tmp_path, trials=12, overrides=['sites=["2\'"]'])
     tz = np.array([r["park_tz"] for r in out.rows])
     pitch = np.array([r["park_p_deg"] for r in out.rows])
     assert abs(tz.mean()) < 0.015 and tz.std() < 0.02
