@@ -462,3 +462,18 @@ def test_open3d_thread_cap_is_restored_and_changes_nothing() -> None:
     b = register(src, tgt, CFG.model_copy(update={"open3d_threads": None}))
     _check(a, T_TRUE)
     np.testing.assert_allclose(a.T, b.T, atol=1e-6)
+
+
+def test_color_correlation_matches_numpy_and_ignores_gain_and_offset() -> None:
+    from mmpa.registration.pipeline import color_correlation
+
+    rng = np.random.default_rng(4)
+    a = rng.random((500, 3))
+    b = 0.7 * a + 0.1 * rng.random((500, 3))
+    expected = np.corrcoef(a.mean(axis=1), b.mean(axis=1))[0, 1]
+    assert color_correlation(a, b) == pytest.approx(expected, abs=1e-12)
+    assert color_correlation(a, 0.3 * b + 0.4) == pytest.approx(expected, abs=1e-12)
+    assert color_correlation(a, 1.0 - b) == pytest.approx(-expected, abs=1e-12)
+    assert color_correlation(a, np.full_like(a, 0.5)) == np.inf  # untextured: no check
+    with pytest.raises(InvalidInputError):
+        color_correlation(a, b[:10])

@@ -100,3 +100,20 @@ def test_colorless_twin_pair_uses_point_to_plane(twin: TwinPairs) -> None:
     assert r.stages["method"] == "point_to_plane_icp"
     assert r.ok, r.reason
     assert translation_error(twin.truth["park_a"], r.T) < 3e-3
+
+
+def test_photometric_check_refuses_colors_that_disagree(twin: TwinPairs) -> None:
+    """The geometry of park_a is unchanged, but the current cloud's intensities are inverted
+    (I -> 1 - I): every geometric fit puts opposite colors together, so the photometric check
+    refuses (a pose the arm would act on is never returned). A gain and offset of the lighting
+    (I -> 0.5 I + 0.2) is not a disagreement: registered as before."""
+    cur = twin.current["park_a"]
+    inverted = PointCloud(cur.points, 1.0 - cur.colors)
+    r = register(twin.taught, inverted)
+    assert not r.ok
+    assert "photometric check failed" in r.reason + r.stages.get("geometric_reason", "")
+    dimmer = PointCloud(cur.points, 0.5 * cur.colors + 0.2)
+    r = register(twin.taught, dimmer)
+    assert r.ok, r.reason
+    assert r.stages["color_correlation"] > 0.9
+    assert translation_error(twin.truth["park_a"], r.T) < 2e-3

@@ -33,7 +33,10 @@ target). Stages:
    ``J_C = [((s - c) x d)/L, d]`` (twist about the centroid ``c`` with rotations scaled by the
    cloud radius ``L``), the information matrix
    ``H = (lambda sum J_G^T J_G + (1 - lambda) sum J_C^T J_C) / N`` must have its smallest
-   eigenvalue above ``min_information``. A single plane of one color leaves three directions
+   eigenvalue above ``min_information``; with color on both sides, the intensities must
+   correlate over the correspondences (:func:`color_correlation`, ``min_color_correlation``:
+   a geometric fit along a repeated structure puts different colors on top of each other).
+   A single plane of one color leaves three directions
    with ``H`` ~ 0 (two in-plane translations, the rotation about the normal); texture on the
    plane fills them through ``d``.
 """
@@ -59,6 +62,7 @@ from mmpa.registration.fgr import fgr_solve
 __all__ = [
     "Prepared",
     "Registration",
+    "color_correlation",
     "fgr_correspondences",
     "information_matrix",
     "prepare",
@@ -686,6 +690,19 @@ def _fine_stage(
             f"{what} pose (limits {max_shift * 1e3:.0f} mm / {max_rot:.1f} deg): "
             f"{what} pose rejected" + ("; register without init" if init is not None else "")
         )
+    if src.colored and tgt.colored and cfg.min_color_correlation > 0:
+        rho = color_correlation(
+            np.asarray(src.levels[last.voxel].colors)[corr[:, 0]],
+            np.asarray(tgt.levels[last.voxel].colors)[corr[:, 1]],
+            cfg.color_check_min_std,
+        )
+        stages[f"{prefix}color_correlation"] = rho
+        if rho < cfg.min_color_correlation:
+            return fail(
+                f"photometric check failed: the intensities at the {n} correspondences "
+                f"correlate {rho:.2f} < {cfg.min_color_correlation} (the geometry fits but "
+                "the colors do not: a wrong pose along a repeated structure?)"
+            )
     t1 = time.perf_counter()
     lam_min, weak = _min_information(src, tgt, T, corr, last, colored, cfg)
     stages[f"{prefix}degeneracy_s"] = time.perf_counter() - t1
@@ -701,6 +718,27 @@ def _fine_stage(
 
 
 _DOF = ("rx", "ry", "rz", "x", "y", "z")
+
+
+def color_correlation(colors_s: Array, colors_t: Array, min_std: float = 0.02) -> float:
+    """Pearson correlation of the intensities (mean of RGB in [0, 1]) of corresponding
+    points, ``colors_s`` and ``colors_t`` (N, 3), row i of one matching row i of the other.
+
+    ``rho = cov(I_s, I_t) / (std(I_s) std(I_t))``, invariant to ``I -> a I + b`` on either
+    side (a change of exposure or lighting). Returns ``+inf`` (nothing to check) when either
+    standard deviation is below ``min_std`` (an untextured scene) or there are fewer than
+    3 pairs.
+    """
+    a = np.asarray(colors_s, float).reshape(-1, 3).mean(axis=1)
+    b = np.asarray(colors_t, float).reshape(-1, 3).mean(axis=1)
+    if len(a) != len(b):
+        raise InvalidInputError(f"color_correlation: {len(a)} vs {len(b)} rows")
+    if len(a) < 3:
+        return float("inf")
+    sa, sb = float(a.std()), float(b.std())
+    if sa < min_std or sb < min_std:
+        return float("inf")
+    return float(np.mean((a - a.mean()) * (b - b.mean())) / (sa * sb))
 
 
 def _open3d_message(e: Exception) -> str:
