@@ -372,17 +372,29 @@ def make_grasper(cfg: Any, world: Any = None) -> Any:
 
 
 def run(cfg: Config, ctx: Context, progress: Callable[[str, float], None] | None = None) -> Outcome:
+    from mmpa.errors import UnknownNameError
     from mmpa.sim.world import SimWorld
 
-    rng = np.random.default_rng(cfg.seed)
+    for o in cfg.objects:
+        if o not in CLASSES:
+            raise UnknownNameError("object", o, list(CLASSES))
+    for li in cfg.lighting:
+        if li not in SimWorld.LIGHTING:
+            raise UnknownNameError("lighting condition", li, list(SimWorld.LIGHTING))
     n = cfg.n_trials()
     rows = []
     total = len(cfg.objects) * len(cfg.lighting) * n
     with SimWorld(site="0") as world:
         grasper = make_grasper(cfg, world)
+        lights = list(world.LIGHTING)
         for obj in cfg.objects:
             for light in cfg.lighting:
                 for t in range(n):
+                    # every draw of a trial (scene, sensor noise) from its own seed: a cell
+                    # run alone repeats the same trials as in the full table
+                    cell = CLASSES.index(obj) * len(lights) + lights.index(light)
+                    rng = np.random.default_rng([cfg.seed, cell, t])
+                    world.set_episode(cell * 100_000 + t)
                     row = grasp_trial(world, grasper, obj, light, rng, others=cfg.others)
                     row["trial"] = t
                     rows.append(row)

@@ -242,6 +242,21 @@ class SimWorld:
     def speed_bump_enabled(self) -> bool:
         return self._bump_body is not None and self.model.body_pos[self._bump_body][2] > -0.5
 
+    def set_episode(self, episode: int) -> None:
+        """Re-seed the per-episode noise streams (camera, lidar, joint repeatability, and the
+        odometry from the next :meth:`reset`) as if the world had been built with
+        ``episode``: a trial that calls it first does not depend on the trials run before it
+        in the same world. The robot instance (the error model's seed) is unchanged."""
+        if int(episode) < 0:
+            raise InvalidInputError(f"episode must be >= 0, got {episode}")
+        self.episode = int(episode)
+        rng = self.error_model.rng
+        self._rng_joint = rng("joint_repeatability", self.episode)
+        if self._camera is not None:
+            self._camera._rng = rng("camera", self.episode)
+        if self._lidar is not None:
+            self._lidar._rng = rng("lidar", self.episode)
+
     def reset(
         self,
         site: str | None = None,
