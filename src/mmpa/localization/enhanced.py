@@ -145,6 +145,10 @@ class ObserverConfig(BaseModel):
     # seeds 0/1: 1.54/1.50 mm -> 1.22/1.11 mm. Tracked 2-reflector fixes need their bearings.
     bearing_sigma_static: float = Field(0.001, ge=0)
     outlier_sigmas: float = Field(3.5, gt=0)  # drop reflectors with larger normalized residual
+    # improvement: mu_G by a joint Gauss-Newton on ranges AND bearings weighted by the SDs
+    # above (:func:`trilaterate` ``refine_heading``); False: eq. 1 (least squares on the
+    # ranges) then eq. 2 (mean heading) as printed
+    joint_refine: bool = True
     min_reflectors: int = Field(3, ge=3)
     # improvement: reflectors cut by something in front of them (a person) are not used; their
     # fitted centers are off by up to the radius (measured in the twin: 17-58 mm at 1-4 beams)
@@ -213,7 +217,12 @@ class ReflectorObserver:
             sr, sb = self.sigmas(det.beams[k], redundant=True)
             try:
                 tri = trilaterate(
-                    self.landmarks[ident.ids[k]], det.ranges[k], det.bearings[k], sr, sb
+                    self.landmarks[ident.ids[k]],
+                    det.ranges[k],
+                    det.bearings[k],
+                    sr,
+                    sb,
+                    refine_heading=c.joint_refine,
                 )
             except ValueError:
                 self.last_status = "degenerate"
@@ -310,8 +319,10 @@ class EnhancedConfig(BaseModel):
 
     @classmethod
     def paper(cls) -> EnhancedConfig:
-        """Algorithm 1 exactly as printed (identity eq. 3, lambda = 1, Nav2 updates only)."""
+        """Algorithm 1 exactly as printed (eq. 1-2 for ``mu_G``, identity eq. 3, lambda = 1,
+        Nav2 updates only)."""
         return cls(
+            observer=ObserverConfig(joint_refine=False),
             position_metric="identity",
             injection="paper",
             update_when_stationary=False,
