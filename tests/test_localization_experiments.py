@@ -82,3 +82,25 @@ def test_kidnap_trial_does_not_depend_on_what_ran_before(monkeypatch) -> None:
     assert len(first[1]) > 5
     np.testing.assert_array_equal(first[1], again[1])
     assert first[0] == again[0] or (np.isnan(first[0]) and np.isnan(again[0]))
+
+
+def test_dropout_trial_does_not_depend_on_the_other_methods() -> None:
+    """A reflector-dropout trial (initial guess, reflectors left visible, each method's
+    generator) is the same whichever methods run beside it: the enhanced AMCL's error trace
+    with trilateration and T-AMCL in front of it equals its trace alone."""
+    import numpy as np
+
+    from mmpa.experiments import reflector_dropout as rd
+
+    short = {
+        "waypoints": [[-0.35, 0.94], [2.4, 0.2]],
+        "dropout_start": 4.0,
+        "dropout_end": 7.0,
+    }
+    alone = rd._dropout_run(rd.Config(methods=["enhanced"], **short), 0)[1]
+    mixed = rd._dropout_run(rd.Config(methods=["trilateration", "tamcl", "enhanced"], **short), 0)[
+        1
+    ]
+    assert len(alone["enhanced"]) > 20
+    np.testing.assert_array_equal(alone["enhanced"], mixed["enhanced"])
+    np.testing.assert_array_equal(alone["visible"], mixed["visible"])
