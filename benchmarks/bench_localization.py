@@ -48,7 +48,9 @@ def main() -> None:
         t_enh = _median_ms(lambda: enh.update(odom, scan, force=True))
         t_obs = _median_ms(lambda: enh.observer.observe(scan))
         r, a = amcl._beams(scan, 90)
-        t_prob = _median_ms(lambda: amcl.log_likelihood_field(amcl.particles, r, a, 0.03, 0.025))
+        t_prob = _median_ms(
+            lambda: amcl.log_likelihood_field(amcl.particles, r, a, 0.03, 0.025, signed=True)
+        )
         beam = AMCL(grid, lp, cfg.model_copy(update={"laser_model_type": "beam"}))
         beam.set_initial_pose(w.truth.base_pose2d())
         t_beam = _median_ms(lambda: beam.update(odom, scan, force=True), n=10)
@@ -57,7 +59,7 @@ def main() -> None:
     print(f"  of which the likelihood field itself: {t_lf:.2f} ms")
     print(f"enhanced AMCL update (incl. reflector observation): {t_enh:.2f} ms median")
     print(f"  reflector detection + triangle matching + trilateration: {t_obs:.2f} ms")
-    print(f"  product-form likelihood field (< 3 reflectors, 90 beams): {t_prob:.2f} ms")
+    print(f"  product-form signed likelihood field (< 3 reflectors, 90 beams): {t_prob:.2f} ms")
     print(f"AMCL update with the beam model (2000 particles, 60 beams): {t_beam:.1f} ms median")
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     big = rasterize([Box2D((0.0, 0.0), (100.0, 0.1))], (-50, -50, 50, 50), 0.05)
@@ -69,6 +71,8 @@ def main() -> None:
     print(f"100 m x 100 m map at 5 cm: {big.width} x {big.height} cells")
     print(f"  grid {big.data.nbytes / mib:.1f} MiB, distance field {a._dist.nbytes / mib:.1f} MiB,")
     print(f"  likelihood table {a._pz3_table().nbytes / mib:.1f} MiB (built on the first scan),")
+    sdf = a._signed_padded(0.025).nbytes / mib
+    print(f"  signed distance field {sdf:.1f} MiB (enhanced AMCL, built when < 3 reflectors),")
     print(f"  free-cell index {a._free_cells.nbytes / mib:.1f} MiB; set-up {t_build:.2f} s")
     print(f"  total without the table {mb:.1f} MiB")
     rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

@@ -80,3 +80,26 @@ def test_rasterize_and_distance_field() -> None:
     d = g.distance_field(2.0)
     # 0.5 m above the box (top edge at 0.05): ~0.45 m to the nearest occupied center
     assert abs(d[r[2], c[2]] - 0.45) < 0.06
+
+
+@pytest.mark.parametrize("shift", [0.0, 0.0125])
+def test_signed_distance_field_is_the_distance_to_the_box_surface(shift: float) -> None:
+    """Signed field vs the exact signed distance to an axis-aligned box (independent formula),
+    at cell centers in front of or behind one face (not near a corner): exact when the faces
+    lie on cell edges (cells occupied by their center), within half a cell otherwise; negative
+    inside, where the unsigned field is 0."""
+    res = 0.05
+    lo, hi = np.array([-0.5 + shift, -0.3 + shift]), np.array([0.5 + shift, 0.3 + shift])
+    box = Box2D(tuple((lo + hi) / 2), tuple(hi - lo))
+    g = rasterize([box], (-1.5, -1.5, 1.5, 1.5), res)
+    phi = g.signed_distance_field(2.0, 0.5)
+    cols, rows = np.meshgrid(np.arange(g.width), np.arange(g.height))
+    xy = g.cell_to_world(cols, rows)
+    q = np.abs(xy - (lo + hi) / 2) - (hi - lo) / 2  # box signed distance (Quilez)
+    exact = np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(axis=-1), 0)
+    face = (np.sort(q, axis=-1)[..., 0] < -0.05) & (np.abs(exact) < 0.3)  # off the corners
+    err = np.abs(phi[face] - exact[face])
+    assert face.sum() > 100
+    assert err.max() <= (1e-9 if shift == 0 else res / 2 + 1e-9)
+    assert (phi[g.occupied] < 0).all() and (phi[~g.occupied] > 0).all()
+    assert (g.distance_field(2.0)[g.occupied] == 0).all()

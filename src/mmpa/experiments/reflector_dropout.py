@@ -28,7 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.geometry import wrap_angle
-from mmpa.localization.localizer import _observer, make_localizer
+from mmpa.localization.localizer import METHODS, _observer, make_localizer
 from mmpa.localization.trilateration import trilaterate
 from mmpa.navigation.follower import FollowerConfig, PathFollower
 from mmpa.navigation.mission import laser_pose2d, twin_map, twin_nav_map
@@ -132,12 +132,15 @@ def _dropout_run(cfg: Config, k: int) -> tuple[list[dict[str, Any]], dict[str, A
         start_heading = float(np.arctan2(*(route[1] - route[0])[::-1]))
         world.reset(pose2d=np.array([*route[0], start_heading]))
         lp = laser_pose2d(world)
-        locs = {
-            m: make_localizer(m, grid, lp, np.random.default_rng([cfg.seed, k, i]))
-            for i, m in enumerate(cfg.methods)
+        locs = {  # each method's generator keyed by its name, not its place in the list
+            m: make_localizer(m, grid, lp, np.random.default_rng([cfg.seed, k, METHODS.index(m)]))
+            for m in cfg.methods
         }
+        # one rough initial pose for every method, so that a trial (its initial guess, which
+        # reflectors stay visible) does not depend on how many methods run beside it
+        guess = world.truth.base_pose2d() + rng.normal(0, [0.03, 0.03, 0.02])
         for loc in locs.values():
-            loc.initialize(world.truth.base_pose2d() + rng.normal(0, [0.03, 0.03, 0.02]))
+            loc.initialize(guess.copy())
         n_ref = len(world.map_reflectors)
         fcfg = FollowerConfig(max_v=cfg.speed, approach_radius=0.3)
         follower = PathFollower(route, np.array([*route[-1], 0.0]), fcfg)
@@ -280,6 +283,9 @@ def _visible_count(cfg: Config) -> list[dict[str, Any]]:
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
+    for m in cfg.methods:
+        if m not in METHODS:
+            raise ValueError(f"unknown method {m!r}; valid: {', '.join(METHODS)}")
     n = cfg.trials if cfg.trials is not None else 1
     rows: list[dict[str, Any]] = []
     trace0: dict[str, Any] = {}

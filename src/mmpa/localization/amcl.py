@@ -165,6 +165,8 @@ class AMCL:
         self._free_cells = np.flatnonzero(grid.free).astype(np.int32)  # row * W + col
         self._table: Array = np.zeros(0)
         self._dist_pad: Array | None = None
+        self._sdf_pad: Array | None = None
+        self._sdf_key: float | None = None
         self._table_key: float | None = None
         self._rmax = 20.0
         if len(self._free_cells) == 0:
@@ -257,14 +259,25 @@ class AMCL:
         return 1.0 + table[row * (g.width + 2) + col].sum(axis=1)
 
     def log_likelihood_field(
-        self, particles: Array, ranges: Array, angles: Array, sigma: float, offset: float = 0.0
+        self,
+        particles: Array,
+        ranges: Array,
+        angles: Array,
+        sigma: float,
+        offset: float = 0.0,
+        signed: bool = False,
     ) -> Array:
         """Product-form likelihood field (Nav2's ``likelihood_field_prob`` without beam
         skipping): ``log p = sum_b log(z_hit exp(-d_b^2 / (2 sigma^2)) + z_rand / range_max)``
         with ``d_b`` the distance field BILINEARLY interpolated at the beam endpoint (smooth in
         the pose, unlike the nearest-cell lookup), ``max_dist`` off the map, less ``offset``
         (``resolution / 2``: distance to the edge of the occupied cell, where the surface lies
-        on average, instead of its center), floored at 0. Returns (N,)."""
+        on average, instead of its center), floored at 0. With ``signed``, ``d_b`` is the
+        absolute value of the interpolated SIGNED distance to that surface
+        (:meth:`OccupancyGrid.signed_distance_field`, ``offset`` in m): an endpoint behind
+        the surface, inside the obstacle, is penalized like one in front of it (unsigned, the
+        field is 0 inside obstacles, so long beams cost nothing and the fit leans away from the
+        walls seen). Returns (N,)."""
         g = self.grid
         c = self.cfg
         ox, oy, oth = self._laser_origin(particles)
@@ -278,13 +291,15 @@ class AMCL:
         fy = np.clip(fy, 0.0, g.height + 0.999)
         i0, j0 = np.floor(fx).astype(np.int32), np.floor(fy).astype(np.int32)
         tx, ty = fx - i0, fy - j0
-        d = self._dist_padded()
+        d = self._signed_padded(offset) if signed else self._dist_padded()
         w2 = g.width + 2
         k = j0 * w2 + i0
         dist = (d[k] * (1 - tx) + d[k + 1] * tx) * (1 - ty) + (
             d[k + w2] * (1 - tx) + d[k + w2 + 1] * tx
         ) * ty
-        if offset > 0:
+        if signed:
+            dist = np.abs(dist)
+        elif offset > 0:
             dist = np.maximum(dist - offset, 0.0)
         pz = c.z_hit * np.exp(-(dist * dist) / (2 * sigma * sigma)) + c.z_rand / self._rmax
         return np.log(pz).sum(axis=1)
@@ -296,6 +311,16 @@ class AMCL:
                 self._dist, 1, constant_values=self.cfg.laser_likelihood_max_dist
             ).ravel()
         return self._dist_pad
+
+    def _signed_padded(self, offset: float) -> Array:
+        """Flattened (H+2)(W+2) signed distance field (surface ``offset`` m out from the
+        occupied cell centers) with a ``max_dist`` border (cached per offset)."""
+        if self._sdf_key != offset or self._sdf_pad is None:
+            md = self.cfg.laser_likelihood_max_dist
+            phi = self.grid.signed_distance_field(md, offset / self.grid.resolution)
+            self._sdf_pad = np.pad(phi.astype(np.float32), 1, constant_values=md).ravel()
+            self._sdf_key = offset
+        return self._sdf_pad
 
     def _pz3_table(self) -> Array:
         """Flattened (H+2)(W+2) table of ``pz^3`` per cell (border: off the map)."""
