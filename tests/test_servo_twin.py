@@ -128,3 +128,43 @@ def test_descent_detections_see_the_object_stopped(world):
     assert n_blind == 0 and n_seen >= 2
     assert kf_blind.velocity()[1] == pytest.approx(0.2)
     assert abs(kf_seen.velocity()[1]) < 0.08, kf_seen.velocity()
+
+
+def _bottle_under_the_first_view(world, cfg: GraspConfig):
+    """The water bottle stands upright right under the first view in high light: seen from
+    straight above it is a white disc clipped at 255, which the shipped detector takes for
+    the yida bottle (water bottle score < 0.05). Runs the tracking grasp; returns its result
+    and the bottle's height above the desk top 2 s after the lift (physics)."""
+    from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, run_grasp
+    from mmpa.perception.dataset import DESK_PARK, _footprint, desk_frame, random_table_scene
+    from mmpa.perception.ssd import Detector
+    from mmpa.servo.grasp import look_configuration
+
+    world.reset(pose2d=np.asarray(DESK_PARK, float), settle=0.2)
+    world.set_lighting("high")
+    random_table_scene(world, np.random.default_rng(5), [], [])  # clear the desk
+    _, top, _ = desk_frame(world)
+    rb = world.nominal
+    T_map_B = world.truth.T_map_arm_base()
+    p_map = (T_map_B @ np.array([LOOK_TARGET[0], LOOK_TARGET[1], 0.0, 1.0]))[:3]
+    _, h = _footprint(world, "water_bottle")
+    world.place_object("water_bottle", np.array([p_map[0], p_map[1], top + h + 0.001]))
+    world.step(0.3)
+    look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])
+    world.arm.move_joints(look_configuration(rb, look, LOOK_HEIGHT))
+    g = TrackingGrasp(Detector.load(), rb, cfg)
+    res = run_grasp(world, g, "water_bottle", world.step)
+    world.step(2.0)
+    return res, world.truth.T_map_object("water_bottle")[2, 3] - (top + h)
+
+
+def test_second_view_finds_what_the_first_view_misses(world):
+    """Improvement (second views): the bottle the first view misses is found from a second,
+    more oblique view and grasped (held off the desk, physics); with no second views the
+    robot waits at the first view and never finds it (the paper's behaviour)."""
+    res_0, lift_0 = _bottle_under_the_first_view(world, GraspConfig(search_views=[], max_time=2))
+    assert res_0.reason == "not found" and not res_0.detected_first and res_0.views == 0
+    assert abs(lift_0) < 0.01  # untouched
+    res, lift = _bottle_under_the_first_view(world, GraspConfig(max_time=15))
+    assert not res.detected_first and res.found_view >= 1 and res.views >= 1
+    assert res.reason == "grasped" and lift > 0.04, (res.reason, lift)
