@@ -133,11 +133,12 @@ class GraspConfig(BaseModel):
     # ``candidate_score`` in the current view, located from its depth; best first, at most
     # ``search_candidates``) is looked at from each of ``search_views`` in turn: (azimuth deg
     # from the direction toward the arm base, horizontal distance m, height m above the desk)
-    # of the camera, which looks at the candidate's mid-height. There the detection (at the
-    # detector's threshold) within ``search_gate`` of the candidate starts the track; else
-    # back to the first view. In high light a bottle seen from above is a white disc clipped
-    # at 255 (60-98 % of its pixels), from the side its label and shape show (see the grasp
-    # experiment's report); empty: the paper's behaviour (wait for it to appear)
+    # of the camera, which looks at the candidate's mid-height. There a detection at the
+    # detector's threshold on the candidate (within ``search_gate`` or the candidate inside
+    # its box), or one anywhere scoring ``reinit_score`` (a rolling stick moves away from its
+    # candidate), starts the track; else back to the first view. In high light a bottle seen
+    # from above is a white disc clipped at 255 (60-98 % of its pixels), from the side its
+    # label and shape show; empty: the paper's behaviour (wait for it to appear)
     search_views: list[tuple[float, float, float]] = Field(
         default_factory=lambda: [(0.0, 0.2, 0.4), (0.0, 0.12, 0.4)]
     )
@@ -467,7 +468,10 @@ class TrackingGrasp:
                     q_now = np.asarray(arm.joint_positions(), float)
                     fr = camera.capture()
                     det, meas = self._measure(fr, name, q_now, near=p)
-                    if meas is not None and self._same_object(fr, q_now, det.box, meas.p, p):
+                    if meas is not None and (
+                        det.score >= cfg.reinit_score  # as sure as a track restart needs
+                        or self._same_object(fr, q_now, det.box, meas.p, p)
+                    ):
                         return q_cmd, det, meas, views
                     wait(1.0 / cfg.rate_hz)
         return q_cmd, None, None, views
