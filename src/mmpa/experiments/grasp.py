@@ -5,8 +5,10 @@ Per trial: the robot parks in front of the grasp desk (seeded jitter), the targe
 up to three other objects plus distractors lie at random poses on the reachable part of the
 desk, the light is set, the arm looks down at the desk; then the tracking grasp
 (:class:`mmpa.servo.grasp.TrackingGrasp`) detects, servos, descends, closes and lifts.
-Detection success: the target is detected in the first frame. Grasp success: after the lift
-the object is still held off the desk 2 s later, in the physics (not a distance threshold).
+Detection success: the target is detected in the first frame (``found_view`` in the rows: 0
+the first view, k >= 1 after k second views, -1 never; ``views``: second views taken, see
+``GraspConfig.search_views``). Grasp success: after the lift the object is still held off the
+desk 2 s later, in the physics (not a distance threshold).
 """
 
 from __future__ import annotations
@@ -201,6 +203,8 @@ def grasp_trial(
         "lighting": lighting,
         "speed": speed,
         "detected": res.detected_first,
+        "found_view": res.found_view,
+        "views": res.views,
         "grasped": held,
         "reason": reason,
         "failure": "" if held else probe.failure(reason, res),
@@ -336,7 +340,8 @@ class OracleDetector:
         self.min_pixels = min_pixels
         self.ids = {world.model.body(n).id: i for i, n in enumerate(CLASSES)}
 
-    def detect(self, image: np.ndarray) -> list[Any]:
+    def detect(self, image: np.ndarray, score_threshold: float | None = None) -> list[Any]:
+        """Truth boxes of the visible objects (``score_threshold`` ignored: every box scores 1)."""
         from mmpa.perception.dataset import boxes_from_segmentation
         from mmpa.perception.ssd import Detection
 
