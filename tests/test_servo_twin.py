@@ -72,21 +72,13 @@ def test_tracking_grasp_of_a_moving_ball(world):
     assert all(r["reason"] in ("grasped", "missed", "dropped") for r in rows), rows
 
 
-def _descent_after_unseen_turn(world, updates: bool):
-    """The ball lies still but the predictor believes it moves at 0.2 m/s along arm_base y
-    (a turn it has not seen yet); runs the descent and returns the predictor after it and
-    the number of detections it took during the descent."""
-    from mmpa.experiments.grasp import LOOK_TARGET, SERVO_RESOLUTION
+def _ball_under_the_look_view(world, height: float):
+    """The tennis ball alone on the cleared desk under the grasp experiment's look target,
+    the arm at the look configuration ``height`` m above the desk; returns the nominal
+    robot."""
+    from mmpa.experiments.grasp import LOOK_TARGET
     from mmpa.perception.dataset import DESK_PARK, desk_frame, random_table_scene
     from mmpa.servo.grasp import look_configuration
-    from mmpa.servo.predictor import ConstantVelocityKF
-
-    class CountingKF(ConstantVelocityKF):
-        updates = 0
-
-        def update(self, z):
-            CountingKF.updates += 1
-            super().update(z)
 
     world.reset(pose2d=np.asarray(DESK_PARK, float), settle=0.2)
     world.set_lighting("normal")
@@ -98,7 +90,25 @@ def _descent_after_unseen_turn(world, updates: bool):
     world.place_object("tennis_ball", np.array([p_map[0], p_map[1], top + 0.034]))
     world.step(0.3)
     look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])
-    world.arm.move_joints(look_configuration(rb, look, 0.25))
+    world.arm.move_joints(look_configuration(rb, look, height))
+    return rb
+
+
+def _descent_after_unseen_turn(world, updates: bool):
+    """The ball lies still but the predictor believes it moves at 0.2 m/s along arm_base y
+    (a turn it has not seen yet); runs the descent and returns the predictor after it and
+    the number of detections it took during the descent."""
+    from mmpa.experiments.grasp import SERVO_RESOLUTION
+    from mmpa.servo.predictor import ConstantVelocityKF
+
+    class CountingKF(ConstantVelocityKF):
+        updates = 0
+
+        def update(self, z):
+            CountingKF.updates += 1
+            super().update(z)
+
+    rb = _ball_under_the_look_view(world, 0.25)
     g = TrackingGrasp(
         OracleDetector(world), rb, GraspConfig(descend_updates=updates, descend_speed=0.4)
     )
@@ -221,9 +231,7 @@ def test_weak_detections_count_only_on_the_track(world):
     """Track-aware threshold (improvement): with no box at the detector's threshold, a weak
     box of the object's class is taken when it is located within ``track_gate`` of the
     track, and only then (checked against the ball's true position)."""
-    from mmpa.experiments.grasp import LOOK_TARGET, SERVO_RESOLUTION
-    from mmpa.perception.dataset import DESK_PARK, desk_frame, random_table_scene
-    from mmpa.servo.grasp import look_configuration
+    from mmpa.experiments.grasp import SERVO_RESOLUTION
 
     class UnsureOracle(OracleDetector):
         """The truth boxes, every one scored 0.2 (under the threshold 0.3)."""
@@ -233,17 +241,7 @@ def test_weak_detections_count_only_on_the_track(world):
             out = [dataclasses.replace(d, score=0.2) for d in super().detect(image)]
             return [d for d in out if d.score >= th]
 
-    world.reset(pose2d=np.asarray(DESK_PARK, float), settle=0.2)
-    world.set_lighting("normal")
-    random_table_scene(world, np.random.default_rng(5), [], [])  # clear the desk
-    _, top, _ = desk_frame(world)
-    rb = world.nominal
-    T_map_B = world.truth.T_map_arm_base()
-    p_map = (T_map_B @ np.array([LOOK_TARGET[0], LOOK_TARGET[1], 0.0, 1.0]))[:3]
-    world.place_object("tennis_ball", np.array([p_map[0], p_map[1], top + 0.034]))
-    world.step(0.3)
-    look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])
-    world.arm.move_joints(look_configuration(rb, look, 0.3))
+    rb = _ball_under_the_look_view(world, 0.3)
     world.camera.set_resolution(*SERVO_RESOLUTION)  # the oracle renders at this size too
     try:
         frame = world.camera.capture()

@@ -39,6 +39,7 @@ and the grasp success among runs with a detection.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -129,6 +130,33 @@ def desk_in_scan(
     return True
 
 
+def turn_on_the_spot(
+    world: Any,
+    localizer: Any,
+    rate: Callable[[Array, Any], float | None],
+    dt: float,
+    timeout: float,
+) -> tuple[bool, float]:
+    """Turn on the spot on the localization estimate: every ``dt`` s, scan into
+    ``localizer`` and command ``w = rate(estimate, scan)`` rad/s until ``rate`` returns None
+    (done) or ``timeout`` s pass; then stop and settle 0.3 s. Returns ``(done, seconds)``."""
+    t0 = world.time
+    done = False
+    while world.time - t0 < timeout:
+        odom = world.odometry.odometry().pose
+        scan = world.lidar.scan()
+        localizer.update(odom, scan, force=False)
+        w = rate(localizer.pose_at(odom), scan)
+        if w is None:
+            done = True
+            break
+        world.base.set_velocity(0.0, w)
+        world.step(dt)
+    world.base.stop()
+    world.step(0.3)
+    return done, float(world.time - t0)
+
+
 def search_desk(world: Any, localizer: Any, cfg: Config) -> tuple[bool, float]:
     """Turn on the spot (toward the desk side first, on the estimate) until the desk's front
     legs are in the scan (:func:`desk_in_scan`); returns ``(found, seconds)``."""
@@ -136,29 +164,18 @@ def search_desk(world: Any, localizer: Any, cfg: Config) -> tuple[bool, float]:
 
     legs = desk_front_legs(world)
     T_base_laser = se2_to_T(*laser_pose2d(world))
-    dt = 0.1
-    t0 = world.time
-    d = world.scene.grasp_desk
-    center = np.asarray(d.center, float)
-    found = False
-    while world.time - t0 < cfg.search_timeout:
-        odom = world.odometry.odometry().pose
-        scan = world.lidar.scan()
-        localizer.update(odom, scan, force=False)
-        est = localizer.pose_at(odom)
+    center = np.asarray(world.scene.grasp_desk.center, float)
+
+    def rate(est: Array, scan: Any) -> float | None:
         off = float(wrap_angle(np.arctan2(*(center - est[:2])[::-1]) - est[2]))
         T_map_laser = se2_to_T(*est) @ T_base_laser
         if abs(off) <= cfg.face_tol and desk_in_scan(
             scan, T_map_laser, legs, cfg.leg_radius, cfg.leg_points
         ):
-            found = True
-            break
-        w = cfg.search_w * (1.0 if off >= 0 else -1.0)
-        world.base.set_velocity(0.0, w)
-        world.step(dt)
-    world.base.stop()
-    world.step(0.3)
-    return found, float(world.time - t0)
+            return None
+        return cfg.search_w * (1.0 if off >= 0 else -1.0)
+
+    return turn_on_the_spot(world, localizer, rate, 0.1, cfg.search_timeout)
 
 
 def turn_to_heading(
@@ -167,22 +184,15 @@ def turn_to_heading(
     """Turn on the spot until the ESTIMATED heading is within ``tol`` rad of ``heading``
     (``w = clip(1.5 e, +-0.3)`` rad/s, at least 0.02 rad/s; scans into ``localizer`` every
     0.05 s); returns ``(aligned, seconds)``."""
-    dt = 0.05
-    t0 = world.time
-    aligned = False
-    while world.time - t0 < timeout:
-        odom = world.odometry.odometry().pose
-        localizer.update(odom, world.lidar.scan(), force=False)
-        e = float(wrap_angle(heading - localizer.pose_at(odom)[2]))
+
+    def rate(est: Array, scan: Any) -> float | None:
+        e = float(wrap_angle(heading - est[2]))
         if abs(e) <= tol:
-            aligned = True
-            break
+            return None
         w = float(np.clip(1.5 * e, -0.3, 0.3))
-        world.base.set_velocity(0.0, w if abs(w) >= 0.02 else 0.02 * np.sign(e))
-        world.step(dt)
-    world.base.stop()
-    world.step(0.3)
-    return aligned, float(world.time - t0)
+        return w if abs(w) >= 0.02 else 0.02 * float(np.sign(e))
+
+    return turn_on_the_spot(world, localizer, rate, 0.05, timeout)
 
 
 def place_trial_objects(world: Any, rng: np.random.Generator, name: str, others: int) -> None:
