@@ -60,7 +60,7 @@ from mmpa.servo.ibvs import (
     pinv,
 )
 from mmpa.servo.nullspace import manipulability_gradient, null_space_projector
-from mmpa.servo.predictor import ConstantVelocityKF, PredictorConfig
+from mmpa.servo.predictor import ConstantVelocityKF, PredictorConfig, fit_line
 from mmpa.servo.target import box_points, desk_height, grasp_height, top_surface
 
 __all__ = ["GraspConfig", "GraspResult", "TrackingGrasp", "look_configuration"]
@@ -98,6 +98,14 @@ class GraspConfig(BaseModel):
     # to the timeout); ``track_score`` >= the detector's threshold: off
     track_score: float = Field(0.15, ge=0, le=1)
     track_gate: float = Field(0.06, gt=0)  # m
+    # improvement: a static object's located point jitters (a lying stick's box slides along
+    # it from frame to frame) and the predictor, tuned to follow turns, then reports up to
+    # 0.06 m/s: the object counts as moving only when the least-squares line through its
+    # measurements of the last ``still_window`` s (at least ``still_min_measurements``,
+    # spanning half the window) is faster than ``final_standoff_max_speed`` too; a still
+    # object's descent follows that line. 0: the predictor alone
+    still_window: float = Field(1.0, ge=0)  # s
+    still_min_measurements: int = Field(8, ge=2)
     descend_speed: float = Field(1.2, gt=0)  # m/s of the blind descent
     descend_rate_hz: float = Field(50.0, gt=0)  # set-points of the descent
     # joint speed limit of the blind descent (a fraction of the arm's qd_max) for an object
@@ -600,6 +608,7 @@ class TrackingGrasp:
         ticks = lost = 0
         first = None
         innovations: list[float] = []
+        hist: list[tuple[float, Array]] = []  # (time s, measured point) of the still window
         searched = False
         res = GraspResult(False, "timeout", False, float("nan"), 0, 0)
 
@@ -652,6 +661,10 @@ class TrackingGrasp:
                 p_meas = meas.p
                 kf.update(p_meas)
                 innovations.append(kf.innovation)
+                if not np.isfinite(kf.innovation):  # the track (re)started
+                    hist.clear()
+                hist.append((now, p_meas))
+                hist[:] = [h for h in hist if h[0] >= now - cfg.still_window]
                 top_z = meas.top_z
                 if np.isfinite(meas.desk_z):
                     dz = meas.desk_z
@@ -709,7 +722,8 @@ class TrackingGrasp:
             wait(dt)
             kf.predict(dt)
             res.loop_s.append(time.perf_counter() - w0)
-            moving = cfg.use_predictor and self._moving(kf.velocity())
+            line = self._still_line(hist)
+            moving = cfg.use_predictor and self._moving(kf.velocity()) and line is None
             final = cfg.moving_final_standoff if moving else cfg.final_standoff
             if aligned >= cfg.align_ticks and standoff > final and not lost_close:
                 standoff, aligned = final, 0  # closer, still in view
@@ -718,9 +732,11 @@ class TrackingGrasp:
                 base.stop()
                 if on_event:
                     on_event("descend")
+                if line is not None:  # the line at the descent's start
+                    line = (line[0] + line[1] * (clock() - hist[-1][0]), line[1])
                 try:
                     q_cmd = self._descend(
-                        arm, q_cmd, kf, p_meas, top_z, desk_z, yaw, wait, camera, name
+                        arm, q_cmd, kf, p_meas, top_z, desk_z, yaw, wait, camera, name, line
                     )
                 except (UnreachableError, MMPAError):
                     res.reason = "unreachable"
@@ -739,6 +755,20 @@ class TrackingGrasp:
         if res.reason == "timeout" and p_meas is None:
             res.reason = "not found"
         return res
+
+    def _still_line(self, hist: list[tuple[float, Array]]) -> tuple[Array, Array] | None:
+        """The least-squares line ``(p at the last measurement (3,), v (3,))`` through the
+        measurements ``hist`` ((time, point) of the last ``still_window`` s) when it shows a
+        still object (horizontal speed at most ``final_standoff_max_speed``); None when it
+        does not, or too few measurements span too short a time to tell."""
+        cfg = self.cfg
+        if cfg.still_window <= 0 or len(hist) < cfg.still_min_measurements:
+            return None
+        t = np.array([h[0] for h in hist])
+        if t[-1] - t[0] < 0.5 * cfg.still_window:
+            return None
+        p, v = fit_line(t, np.array([h[1] for h in hist]))
+        return None if self._moving(v) else (p, v)
 
     def _grasp_yaw(self, axis_xy: Array, q_cmd: Array) -> float:
         """Tool x along the object's horizontal long axis ``axis_xy`` (the fingers close
@@ -761,13 +791,16 @@ class TrackingGrasp:
         wait: Callable[[float], None],
         camera: Any = None,
         name: str | None = None,
+        line: tuple[Array, Array] | None = None,
     ) -> Array:
         """Descent of the TCP to the grasp height (:func:`grasp_height`) at
         ``descend_speed``, set-points at ``descend_rate_hz``. Horizontally the TCP follows the
         object: each set-point is the predicted position ``arm_lag`` s after it is sent
-        (latency compensation); without the predictor, the last measured position. For a
-        moving object with ``descend_updates`` (and a ``camera``) the predictor keeps taking
-        detections at ``rate_hz`` on the upper part of the descent."""
+        (latency compensation); without the predictor, the last measured position; for a
+        still object (``line``: its least-squares line, position now (3,) and velocity (3,),
+        see ``still_window``), that line. For a moving object with ``descend_updates`` (and a
+        ``camera``) the predictor keeps taking detections at ``rate_hz`` on the upper part of
+        the descent."""
         cfg = self.cfg
         dh = self.robot.arm.dh
         dt = 1.0 / cfg.descend_rate_hz
@@ -778,7 +811,9 @@ class TrackingGrasp:
         n = max(int(np.ceil(abs(z0 - zg) / cfg.descend_speed / dt)), 1)
         q_min, q_max = self.robot.arm.q_limits
         n_settle = int(np.ceil(cfg.settle_max / dt))
-        moving = cfg.use_predictor and kf.initialized and self._moving(kf.velocity())
+        moving = (
+            cfg.use_predictor and kf.initialized and self._moving(kf.velocity()) and line is None
+        )
         fraction = (
             cfg.moving_descend_joint_speed_fraction if moving else cfg.descend_joint_speed_fraction
         )
@@ -796,7 +831,9 @@ class TrackingGrasp:
                 z_meas = fk(dh, np.asarray(arm.joint_positions(), float), self._T_ft)[2, 3]
                 if abs(z_meas - zg) < cfg.settle_tol:
                     break
-            if cfg.use_predictor and kf.initialized:
+            if cfg.use_predictor and line is not None:
+                p = line[0] + line[1] * (k * dt + cfg.arm_lag)
+            elif cfg.use_predictor and kf.initialized:
                 p = kf.position(ahead=dt + cfg.arm_lag)
             else:
                 p = p_meas

@@ -4,6 +4,10 @@ which loses objects faster than 0.1 m/s).
 State ``[p (3), v (3)]`` (m, m/s); motion ``p += v dt`` with white acceleration noise of
 spectral density ``accel_sigma^2`` (the discrete Wiener-process model: ``Q = q [[dt^3/3,
 dt^2/2], [dt^2/2, dt]]`` per axis); measurement ``z = p + N(0, meas_sigma^2 I)``.
+
+:func:`fit_line` is the least-squares constant-velocity line through a window of measurements:
+on a static object whose located point jitters (a lying stick's box moves along it from frame
+to frame) its velocity stays near zero where the filter's, tuned to follow turns, does not.
 """
 
 from __future__ import annotations
@@ -14,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from mmpa.errors import InvalidInputError
 from mmpa.geometry import Array
 
-__all__ = ["ConstantVelocityKF", "PredictorConfig"]
+__all__ = ["ConstantVelocityKF", "PredictorConfig", "fit_line"]
 
 
 class PredictorConfig(BaseModel):
@@ -82,3 +86,22 @@ class ConstantVelocityKF:
         if self.x is None:
             raise InvalidInputError("the predictor has no measurement yet")
         return self.x[3:].copy()
+
+
+def fit_line(t: Array, P: Array, t_ref: float | None = None) -> tuple[Array, Array]:
+    """Least-squares line ``p(t) = p_ref + v (t - t_ref)`` through the points ``P`` (N, 3) m
+    measured at the times ``t`` (N,) s (``t_ref``: default the last time). Returns ``(p_ref
+    (3,), v (3,) m/s)``; N >= 2 and the times must not all be equal."""
+    t = np.asarray(t, float)
+    P = np.asarray(P, float)
+    if t.ndim != 1 or P.shape != (len(t), 3) or len(t) < 2:
+        raise InvalidInputError(f"need times (N,) and points (N, 3), N >= 2: {t.shape}, {P.shape}")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(P))):
+        raise InvalidInputError("times and points must be finite")
+    tr = float(t[-1]) if t_ref is None else float(t_ref)
+    dt = t - t.mean()
+    s = float(dt @ dt)
+    if s <= 0:
+        raise InvalidInputError("the times must not all be equal")
+    v = dt @ (P - P.mean(axis=0)) / s
+    return P.mean(axis=0) + v * (tr - t.mean()), v

@@ -11,7 +11,14 @@ deprojected to ``arm_base`` (nominal kinematics)::
 
 - the desk height ``z_desk``: a low percentile of the heights on a ring just outside the box
   (desk pixels around the object);
-- the foreground: box points higher than ``z_desk + fg_min``;
+- the foreground: box points higher than ``z_desk + fg_min``, split into surfaces: 4-neighbour
+  pixels belong to one surface when their points lie within ``gap_abs + gap_rel * s`` of each
+  other (``s`` the pixel footprint, m). The object is the surface whose image bounding box
+  overlaps the detection box best (IoU): the box was drawn around it, while another object in
+  a corner of the box (a lying stick's box crossing a taller cup) fills only part of it. Of the
+  surfaces whose IoU reaches ``fit_keep`` times the best, the highest: the desk, counted as
+  foreground when the desk height is underestimated (the ring outside the box on the floor),
+  fills the box as well as the object on it;
 - the top ``z_top``: a high percentile of the foreground heights (robust to flying pixels);
 - the top center: the mean ``x, y`` of the foreground points within ``top_band`` of ``z_top``
   (the top band), and its long axis in the x-y plane (a lying stick's ridge: the grasp axis).
@@ -32,11 +39,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from mmpa.errors import InvalidInputError
 from mmpa.geometry import Array
 
-__all__ = ["TopSurface", "box_points", "desk_height", "grasp_height", "top_surface"]
+__all__ = ["TopSurface", "box_points", "desk_height", "grasp_height", "surfaces", "top_surface"]
 
 
 @dataclass(frozen=True)
@@ -107,6 +116,43 @@ def desk_height(
     return float(np.percentile(p[:, 2], percentile))
 
 
+def surfaces(points: Array, depth: Array, gap: float) -> tuple[int, Array]:
+    """Connected surfaces of a grid of points: ``points`` (H, W, 3) m and ``depth`` (H, W) m
+    (0 or NaN: no point, never connected); 4-neighbours join when their points lie closer
+    than ``gap`` (scalar m, or (H, W) per pixel: the larger of the pair's). Returns
+    ``(n, labels (H, W) int)``, -1 where there is no point."""
+    P = np.asarray(points, float)
+    z = np.asarray(depth, float)
+    h, w = z.shape
+    ok = np.isfinite(z) & (z > 0)
+    g = np.broadcast_to(np.asarray(gap, float), (h, w))
+    idx = np.arange(h * w).reshape(h, w)
+    rows, cols = [], []
+    for a, b in ((np.s_[:, :-1], np.s_[:, 1:]), (np.s_[:-1, :], np.s_[1:, :])):
+        d = np.linalg.norm(P[a] - P[b], axis=-1)
+        join = ok[a] & ok[b] & (d < np.maximum(g[a], g[b]))
+        rows.append(idx[a][join])
+        cols.append(idx[b][join])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    adj = coo_matrix((np.ones(len(r), bool), (r, c)), shape=(h * w, h * w))
+    _, lab = connected_components(adj, directed=False)
+    lab = lab.reshape(h, w)
+    lab[~ok] = -1
+    keep = np.unique(lab[ok])
+    relabel = np.full(h * w, -1)
+    relabel[keep] = np.arange(len(keep))
+    out = np.where(ok, relabel[np.maximum(lab, 0)], -1)
+    return len(keep), out
+
+
+def _iou(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> float:
+    iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = iw * ih
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return inter / union if union > 0 else 0.0
+
+
 def top_surface(
     depth: Array,
     K: Array,
@@ -119,22 +165,54 @@ def top_surface(
     stride: int = 2,
     min_points: int = 12,
     axis_ratio: float = 2.25,
+    gap_abs: float = 0.005,
+    gap_rel: float = 3.0,
+    fit_keep: float = 0.5,
 ) -> TopSurface | None:
     """The object's top center in ``arm_base`` from the box pixels above ``z_desk`` (every
-    ``stride``-th pixel); ``None`` when fewer than ``min_points`` foreground pixels have
-    depth (object out of the camera's range, box on a hole)."""
+    ``stride``-th pixel) on the foreground surface that fits the box best (module doc;
+    ``gap_rel <= 0`` and ``gap_abs <= 0``: all the foreground, no split); ``None`` when fewer
+    than ``min_points`` foreground pixels have depth (object out of the camera's range, box on
+    a hole)."""
     d = np.asarray(depth)
     if d.ndim != 2:
         raise InvalidInputError(f"depth must be (H, W), got {d.shape}")
     h, w = d.shape
     x1, y1, x2, y2 = _clip_box(box, w, h)
     vv, uu = np.mgrid[y1:y2:stride, x1:x2:stride]
+    shape = uu.shape
     uu, vv = uu.ravel(), vv.ravel()
-    p, _ = box_points(d, K, T_arm_base_camera, uu, vv)
+    p, keep = box_points(d, K, T_arm_base_camera, uu, vv)
     fg = p[:, 2] > z_desk + fg_min
-    n_fg = int(fg.sum())
-    if n_fg < min_points:
+    if int(fg.sum()) < min_points:
         return None
+    if gap_abs > 0 or gap_rel > 0:
+        # the foreground's surfaces on the pixel grid; the one that fits the box best
+        P = np.full((uu.size, 3), np.nan)
+        P[keep] = p
+        zc = np.zeros(uu.size)
+        zc[np.flatnonzero(keep)[fg]] = d[vv, uu][keep][fg]
+        foot = zc * stride / float(np.asarray(K)[0, 0])  # pixel footprint (m) at that depth
+        n, lab = surfaces(
+            P.reshape(*shape, 3), zc.reshape(shape), gap_abs + gap_rel * foot.reshape(shape)
+        )
+        lab = lab.ravel()[keep]  # per point of p
+        fits = []  # (IoU with the box, top height, label)
+        for k in range(n):
+            m = lab == k
+            if m.sum() < min_points:
+                continue
+            u, v = uu[keep][m], vv[keep][m]
+            iou = _iou((u.min(), v.min(), u.max() + stride, v.max() + stride), (x1, y1, x2, y2))
+            fits.append((iou, float(np.percentile(p[m, 2], top_percentile)), k))
+        if not fits:
+            return None
+        best_iou = max(f[0] for f in fits)
+        # of the surfaces that fit the box nearly as well as the best, the highest (the desk
+        # counted as foreground under a wrong desk height fills the box too)
+        best = max((f for f in fits if f[0] >= fit_keep * best_iou), key=lambda f: f[1])[2]
+        fg = lab == best
+    n_fg = int(fg.sum())
     pf = p[fg]
     z_top = float(np.percentile(pf[:, 2], top_percentile))
     band = pf[:, 2] >= z_top - top_band
