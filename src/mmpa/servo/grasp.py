@@ -696,7 +696,11 @@ class TrackingGrasp:
                 kf.predict(dt)
                 res.loop_s.append(time.perf_counter() - w0)
                 continue
-            if cfg.use_predictor:
+            line = self._still_line(hist) if cfg.use_predictor else None
+            if line is not None:  # a still object: its least-squares line
+                p_obj = line[0] + line[1] * (now - hist[-1][0] + dt)
+                v_obj = line[1]
+            elif cfg.use_predictor:
                 p_obj = kf.position(ahead=dt)
                 v_obj = kf.velocity()
             else:
@@ -722,7 +726,6 @@ class TrackingGrasp:
             wait(dt)
             kf.predict(dt)
             res.loop_s.append(time.perf_counter() - w0)
-            line = self._still_line(hist)
             moving = cfg.use_predictor and self._moving(kf.velocity()) and line is None
             final = cfg.moving_final_standoff if moving else cfg.final_standoff
             if aligned >= cfg.align_ticks and standoff > final and not lost_close:
