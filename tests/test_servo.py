@@ -168,3 +168,72 @@ def test_servo_step_gain_schedule_moving_vs_static():
     np.testing.assert_allclose(step(1.5, None), step(4.5, None), atol=1e-12)
     d_lo, d_hi = step(1.5, fast), step(4.5, fast)
     assert np.linalg.norm(d_hi - d_lo) > 1e-4
+
+
+def test_fit_line_matches_polyfit():
+    """The least-squares line against numpy.polyfit per axis, at the last time and another."""
+    from mmpa.servo.predictor import fit_line
+
+    rng = np.random.default_rng(4)
+    t = np.sort(rng.uniform(0.0, 1.0, 15))
+    P = np.array([0.4, -0.1, 0.02]) + np.outer(t, [0.03, -0.02, 0.0]) + rng.normal(0, 0.01, (15, 3))
+    p, v = fit_line(t, P)
+    for i in range(3):
+        slope, icpt = np.polyfit(t, P[:, i], 1)
+        assert v[i] == pytest.approx(slope, abs=1e-12)
+        assert p[i] == pytest.approx(icpt + slope * t[-1], abs=1e-12)
+    p0, _ = fit_line(t, P, t_ref=0.2)
+    assert p0 == pytest.approx(p + v * (0.2 - t[-1]), abs=1e-12)
+    with pytest.raises(InvalidInputError):
+        fit_line(np.zeros(3), P[:3])  # all times equal
+    with pytest.raises(InvalidInputError):
+        fit_line(t[:1], P[:1])
+
+
+def test_still_line_tells_a_jittery_still_object_from_a_moving_one():
+    """Measurements jittering 1 cm around a fixed point at 20 Hz: the predictor (tuned to
+    follow turns) reports the object moving faster than ``final_standoff_max_speed`` at some
+    tick, the 1 s least-squares line does not; an object moving at 0.1 m/s gets no line; too
+    short a history tells nothing."""
+    from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+
+    g = TrackingGrasp(None, default_robot(), GraspConfig())
+    rng = np.random.default_rng(7)
+    c = np.array([0.5, 0.0, -0.02])
+    kf = ConstantVelocityKF(PredictorConfig())
+    hist, fast = [], 0
+    for k in range(40):
+        z = c + rng.normal(0, 0.01, 3) * [1, 1, 0.2]
+        kf.update(z)
+        hist = [h for h in [*hist, (0.05 * k, z)] if h[0] >= 0.05 * k - 1.0]
+        fast += g._moving(kf.velocity())
+        kf.predict(0.05)
+    assert fast > 0  # the filter alone calls it moving at times
+    line = g._still_line(hist)
+    assert line is not None
+    assert np.linalg.norm(line[1][:2]) < 0.05
+    assert np.linalg.norm(line[0][:2] - c[:2]) < 0.01
+    v = np.array([0.1, 0.0, 0.0])
+    moving = [(0.05 * k, c + v * 0.05 * k + rng.normal(0, 0.01, 3)) for k in range(21)]
+    assert g._still_line(moving) is None
+    assert g._still_line(hist[-5:]) is None  # 0.2 s of measurements: cannot tell
+
+
+def test_surfaces_split_at_depth_steps():
+    """Two flat patches side by side, one 5 cm above the other, and a hole: two surfaces
+    (labels agree within each patch), -1 where there is no point; with a gap larger than the
+    step they join."""
+    from mmpa.servo.target import surfaces
+
+    h, w = 6, 8
+    z = np.full((h, w), 0.40)
+    z[:, 4:] = 0.35
+    z[0, 0] = 0.0  # no depth
+    vv, uu = np.mgrid[0:h, 0:w]
+    P = np.stack([uu * 0.002, vv * 0.002, -z], axis=-1)
+    n, lab = surfaces(P, z, 0.01)
+    assert n == 2 and lab[0, 0] == -1
+    assert len(set(lab[:, :4].ravel()) - {-1}) == 1 and len(set(lab[:, 4:].ravel())) == 1
+    assert lab[1, 0] != lab[1, 5]
+    n, lab = surfaces(P, z, 0.06)
+    assert n == 1

@@ -259,3 +259,61 @@ def test_weak_detections_count_only_on_the_track(world):
         assert g_off._measure(frame, "tennis_ball", q, track=[p_top])[1] is None
     finally:
         world.camera.set_resolution(640, 480)
+
+
+def test_top_center_of_a_lying_stick_beside_a_taller_cup(world):
+    """The blue stick lies diagonally under the camera (0.35 m up) with the paper cup beside
+    it inside the stick's box: the top center comes from the surface that fits the box (the
+    stick, within 3 mm of the truth, also when the desk height is 3 cm too low), not from the
+    highest pixels of the box (the cup's rim, 45 mm off)."""
+    from mmpa.experiments.grasp import LOOK_TARGET, SERVO_RESOLUTION
+    from mmpa.geometry import apply, inv
+    from mmpa.perception.dataset import DESK_PARK, desk_frame, random_table_scene
+    from mmpa.robot.kinematics import fk
+    from mmpa.servo.grasp import look_configuration
+    from mmpa.servo.target import desk_height, top_surface
+
+    world.reset(pose2d=np.asarray(DESK_PARK, float), settle=0.2)
+    world.set_lighting("normal")
+    random_table_scene(world, np.random.default_rng(5), [], [])  # clear the desk
+    _, top, _ = desk_frame(world)
+    rb = world.nominal
+    T_map_B = world.truth.T_map_arm_base()
+    c = np.array([LOOK_TARGET[0], LOOK_TARGET[1], 0.0])
+    a = np.array([np.cos(0.6), np.sin(0.6), 0.0])  # the stick's axis in arm_base
+    n = np.array([-a[1], a[0], 0.0])
+    p = apply(T_map_B, c)
+    gid = world.model.geom("blue_stick_geom").id
+    world.place_object("blue_stick", np.array([p[0], p[1], top + 0.016]), yaw=0.0)
+    world.step(0.05)
+    ax0 = world.data.geom_xmat[gid].reshape(3, 3)[:, 2]
+    a_map = T_map_B[:3, :3] @ a
+    yaw = float(np.arctan2(a_map[1], a_map[0]) - np.arctan2(ax0[1], ax0[0]))
+    world.place_object("blue_stick", np.array([p[0], p[1], top + 0.016]), yaw=yaw)
+    p_cup = apply(T_map_B, c + 0.04 * a - 0.055 * n)
+    world.place_object("paper_cup", np.array([p_cup[0], p_cup[1], top + 0.046]))
+    world.step(0.5)
+    look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])
+    world.arm.move_joints(look_configuration(rb, look, 0.35))
+    world.camera.set_resolution(*SERVO_RESOLUTION)
+    try:
+        frame = world.camera.capture()
+        dets = OracleDetector(world).detect(frame.color)
+    finally:
+        world.camera.set_resolution(640, 480)
+    box = next(d.box for d in dets if d.name == "blue_stick")
+    T_cam = fk(rb.arm.dh, world.arm.joint_positions()) @ rb.camera.T_flange_camera
+    K = frame.intrinsics.K
+    T_B_map = inv(world.truth.T_map_arm_base())
+    stick = apply(T_B_map, world.truth.T_map_object("blue_stick")[:3, 3])
+    axis = (T_B_map[:3, :3] @ world.data.geom_xmat[gid].reshape(3, 3)[:, 2])[:2]
+    dz = desk_height(frame.depth, K, T_cam, box)
+    assert dz is not None and dz == pytest.approx(stick[2] - 0.015, abs=0.004)
+    for z_desk in (dz, dz - 0.03):
+        t = top_surface(frame.depth, K, T_cam, box, z_desk, stride=1)
+        assert t is not None and t.axis_xy is not None
+        assert np.linalg.norm(t.p_top[:2] - stick[:2]) < 0.003
+        assert t.p_top[2] == pytest.approx(stick[2] + 0.015, abs=0.004)
+        assert abs(float(t.axis_xy @ axis)) > np.cos(np.radians(3))
+        flat = top_surface(frame.depth, K, T_cam, box, z_desk, stride=1, gap_abs=0, gap_rel=0)
+        assert flat is not None and np.linalg.norm(flat.p_top[:2] - stick[:2]) > 0.03

@@ -59,8 +59,12 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             )
             grasper = make_grasper(gcfg, world)
             for speed in cfg.speeds:
-                rng = np.random.default_rng([cfg.seed, round(1000 * speed)])  # paired draws
                 for t in range(n):
+                    # every draw of a trial (scene, operator, sensor noise) from its own seed:
+                    # the same trial with and without the predictor, whatever ran before
+                    mm_s = round(1000 * speed)
+                    rng = np.random.default_rng([cfg.seed, mm_s, t])
+                    world.set_episode(mm_s * 1000 + t)
                     row = grasp_trial(
                         world,
                         grasper,

@@ -16,9 +16,9 @@ deprojected to ``arm_base`` (nominal kinematics)::
   other (``s`` the pixel footprint, m). The object is the surface whose image bounding box
   overlaps the detection box best (IoU): the box was drawn around it, while another object in
   a corner of the box (a lying stick's box crossing a taller cup) fills only part of it. Of the
-  surfaces whose IoU reaches ``fit_keep`` times the best, the highest: the desk, counted as
-  foreground when the desk height is underestimated (the ring outside the box on the floor),
-  fills the box as well as the object on it;
+  surfaces whose IoU reaches ``fit_keep`` times the best, the one with the highest median
+  height: the desk, counted as foreground when the desk height is underestimated (the ring
+  outside the box on the floor), fills the box as well as the object on it;
 - the top ``z_top``: a high percentile of the foreground heights (robust to flying pixels);
 - the top center: the mean ``x, y`` of the foreground points within ``top_band`` of ``z_top``
   (the top band), and its long axis in the x-y plane (a lying stick's ridge: the grasp axis).
@@ -197,19 +197,20 @@ def top_surface(
             P.reshape(*shape, 3), zc.reshape(shape), gap_abs + gap_rel * foot.reshape(shape)
         )
         lab = lab.ravel()[keep]  # per point of p
-        fits = []  # (IoU with the box, top height, label)
+        fits = []  # (IoU with the box, median height, label)
         for k in range(n):
             m = lab == k
             if m.sum() < min_points:
                 continue
             u, v = uu[keep][m], vv[keep][m]
             iou = _iou((u.min(), v.min(), u.max() + stride, v.max() + stride), (x1, y1, x2, y2))
-            fits.append((iou, float(np.percentile(p[m, 2], top_percentile)), k))
+            fits.append((iou, float(np.median(p[m, 2])), k))
         if not fits:
             return None
         best_iou = max(f[0] for f in fits)
-        # of the surfaces that fit the box nearly as well as the best, the highest (the desk
-        # counted as foreground under a wrong desk height fills the box too)
+        # of the surfaces that fit the box nearly as well as the best, the one standing highest
+        # (median height: the desk counted as foreground under a wrong desk height fills the
+        # box too, in pieces, and a piece may hold a taller object's wall and rim)
         best = max((f for f in fits if f[0] >= fit_keep * best_iou), key=lambda f: f[1])[2]
         fg = lab == best
     n_fg = int(fg.sum())
