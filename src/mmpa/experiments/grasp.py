@@ -211,6 +211,7 @@ def grasp_trial(
         "time_to_grasp": res.time_to_grasp,
         "ticks": res.ticks,
         "lost_ticks": res.lost_ticks,
+        "descent_s": res.descent_s,
         "detect_ms": float(np.mean(res.detect_ms)) if res.detect_ms else float("nan"),
         "capture_ms": float(np.mean(res.capture_ms)) if res.capture_ms else float("nan"),
         "loop_ms": 1000 * float(np.mean(res.loop_s)) if res.loop_s else float("nan"),

@@ -28,6 +28,14 @@ candidate starts the track. In high light a bottle seen from straight above is a
 clipped at 255 that the detector misses or names wrongly; from the side its label and shape
 show (``mmpa experiment grasp``, high light, bottles).
 
+Still objects (improvement): the located point of a static object jitters from frame to frame
+(a lying stick's box slides along it, the camera moves) and the predictor, tuned to follow
+turns, then reports speeds up to 0.06 m/s: a static stick was taken for a moving one (farther
+standoff, descent chasing a phantom velocity: closed 106 mm along it). While the least-squares
+line through the last ``still_window`` s of measurements (:func:`mmpa.servo.predictor.
+fit_line`) is no faster than ``final_standoff_max_speed``, the object is still: it is servoed
+on that line and its descent follows it.
+
 Moving objects (measured with ``mmpa experiment tracking``): the wrist camera sits 95 mm beside
 the tool axis, so at the final standoff the object lies at the lower image border; a moving
 object tracked there drifts out of the view (and its truncated box biases the estimate), so
@@ -190,7 +198,8 @@ class GraspResult:
     """``closed_on_object``: the fingers stopped on something; ``reason``: "grasped",
     "not found", "unreachable", "timeout", "depth"; times in s. ``found_view``: where the
     target was first found: 0 the starting view, k >= 1 the k-th second view taken
-    (``GraspConfig.search_views``), -1 never; ``views``: second views taken."""
+    (``GraspConfig.search_views``), -1 never; ``views``: second views taken; ``descent_s``:
+    s from the start of the descent to the close (NaN: no descent)."""
 
     closed_on_object: bool
     reason: str
@@ -203,6 +212,7 @@ class GraspResult:
     loop_s: list[float] = field(default_factory=list)
     found_view: int = -1
     views: int = 0
+    descent_s: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -737,6 +747,7 @@ class TrackingGrasp:
                     on_event("descend")
                 if line is not None:  # the line at the descent's start
                     line = (line[0] + line[1] * (clock() - hist[-1][0]), line[1])
+                t_descend = clock()
                 try:
                     q_cmd = self._descend(
                         arm, q_cmd, kf, p_meas, top_z, desk_z, yaw, wait, camera, name, line
@@ -744,6 +755,7 @@ class TrackingGrasp:
                 except (UnreachableError, MMPAError):
                     res.reason = "unreachable"
                     break
+                res.descent_s = clock() - t_descend
                 if on_event:
                     on_event("close")
                 held = bool(gripper.close())
