@@ -95,3 +95,17 @@ def test_cli_lists_and_runs(toy, tmp_path):
     assert (tmp_path / "report.md").exists()
     res = cli.invoke(app, ["experiment", "nope", "--out", str(tmp_path)])
     assert res.exit_code == 2 and "toy" in res.output
+
+
+def test_markdown_table_escapes_pipes_in_cells():
+    """A ``|`` in a header or cell is escaped: every line splits into the same number of
+    columns (the mobile-manipulation header 'grasping | detected' broke its table)."""
+    import re
+
+    from mmpa.experiments.runner import markdown_table
+
+    text = markdown_table(["object", "grasping | detected"], [["a|b", 0.5], ["c", float("nan")]])
+    lines = text.strip().splitlines()
+    cols = [len(re.split(r"(?<!\\)\|", line)) for line in lines]
+    assert len(set(cols)) == 1 and cols[0] == 4  # "", two cells, ""
+    assert "grasping \\| detected" in lines[0] and "0.500" in lines[2] and "–" in lines[3]

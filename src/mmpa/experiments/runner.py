@@ -178,14 +178,15 @@ def stats(values: Iterable[float]) -> dict[str, float]:
 
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[Any]], digits: int = 3) -> str:
-    """A GitHub Markdown table; floats rounded to ``digits`` significant decimals."""
+    """A GitHub Markdown table; floats rounded to ``digits`` significant decimals, a ``|``
+    inside a cell escaped (it would start another column)."""
 
     def fmt(v: Any) -> str:
         if isinstance(v, float | np.floating):
             return "–" if not math.isfinite(v) else f"{v:.{digits}f}"
-        return str(v)
+        return str(v).replace("|", "\\|")
 
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines = ["| " + " | ".join(fmt(h) for h in header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(fmt(v) for v in r) + " |" for r in rows]
     return "\n".join(lines) + "\n"
 
