@@ -337,3 +337,31 @@ def test_top_center_of_a_lying_stick_beside_a_taller_cup(world):
         assert abs(float(t.axis_xy @ axis)) > np.cos(np.radians(3))
         flat = top_surface(frame.depth, K, T_cam, box, z_desk, stride=1, gap_abs=0, gap_rel=0)
         assert flat is not None and np.linalg.norm(flat.p_top[:2] - stick[:2]) > 0.03
+
+
+class _GoesBlind:
+    """The oracle detector that stops seeing anything after ``n`` frames."""
+
+    def __init__(self, inner: OracleDetector, n: int) -> None:
+        self.inner, self.cfg, self.n = inner, inner.cfg, n
+
+    def detect(self, image, score_threshold=None):
+        self.n -= 1
+        return self.inner.detect(image, score_threshold) if self.n >= 0 else []
+
+
+@pytest.mark.parametrize("still_coast", [0.0, 2.0])
+def test_a_still_object_lost_on_the_approach_is_grasped_on_its_line(world, still_coast):
+    """The detector goes blind 1.2 s into the approach of the static ball: with
+    ``still_coast`` the arm keeps servoing on the ball's least-squares line and grasps it
+    (held, physics); without, it waits for the ball to reappear until the timeout."""
+    g = make_grasper(Config(weights="oracle", max_time=8.0), world)
+    g.cfg = g.cfg.model_copy(update={"still_coast": still_coast})
+    g.det = _GoesBlind(g.det, 24)
+    row = grasp_trial(world, g, "tennis_ball", "normal", np.random.default_rng(0))
+    assert row["detected"]
+    if still_coast > 0:
+        assert row["grasped"], row
+        assert np.hypot(row["close_dx"], row["close_dy"]) < 0.015
+    else:
+        assert not row["grasped"] and row["reason"] == "timeout", row

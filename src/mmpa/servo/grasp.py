@@ -114,6 +114,10 @@ class GraspConfig(BaseModel):
     # object's descent follows that line. 0: the predictor alone
     still_window: float = Field(1.0, ge=0)  # s
     still_min_measurements: int = Field(8, ge=2)
+    # a still object unseen for less than this is servoed on its line and may be grasped
+    # without a fresh detection (a bottle tracked in high light went undetected straight
+    # under the camera at the final standoff: the arm waited there to the timeout)
+    still_coast: float = Field(2.0, ge=0)  # s
     descend_speed: float = Field(1.2, gt=0)  # m/s of the blind descent
     descend_rate_hz: float = Field(50.0, gt=0)  # set-points of the descent
     # joint speed limit of the blind descent (a fraction of the arm's qd_max) for an object
@@ -686,7 +690,10 @@ class TrackingGrasp:
                 lost += 1
                 innovations.append(float("inf"))
             coasting = cfg.use_predictor and kf.initialized and now - last_seen < cfg.coast_time
-            if meas is None and not coasting:
+            line = self._still_line(hist) if cfg.use_predictor else None
+            # a still object unseen for a while stays where its line says (improvement)
+            still_coasting = line is not None and now - last_seen < cfg.still_coast
+            if meas is None and not (coasting or still_coasting):
                 # paper: stop and wait for the object to reappear; improvement (reacquire):
                 # first back up to the tracking standoff over where it was last seen (it left
                 # the view at the closer final standoff, or moved out of it)
@@ -706,9 +713,10 @@ class TrackingGrasp:
                 kf.predict(dt)
                 res.loop_s.append(time.perf_counter() - w0)
                 continue
-            line = self._still_line(hist) if cfg.use_predictor else None
             if line is not None:  # a still object: its least-squares line
-                p_obj = line[0] + line[1] * (now - hist[-1][0] + dt)
+                # extrapolated at most ``coast_time`` past the last measurement (the slope of
+                # a still object's line is mostly jitter)
+                p_obj = line[0] + line[1] * (min(now - hist[-1][0], cfg.coast_time) + dt)
                 v_obj = line[1]
             elif cfg.use_predictor:
                 p_obj = kf.position(ahead=dt)
@@ -727,12 +735,15 @@ class TrackingGrasp:
                 res.reason = "unreachable"
                 break
             q_cmd = self._send(arm, q_next)
-            ok = meas is not None and err[0] < cfg.align_tol and err[1] < 0.03
+            seen = meas is not None or still_coasting
+            ok = seen and err[0] < cfg.align_tol and err[1] < 0.03
             aligned = aligned + 1 if ok else 0
             recent = innovations[-cfg.steady_ticks :] if cfg.steady_ticks else []
             steady = not (cfg.use_predictor and recent) or max(recent) < cfg.steady_tol
             if cfg.use_predictor and len(recent) < cfg.steady_ticks:
                 steady = False
+            if line is not None:  # still: no turn to wait out (jitter is not motion)
+                steady = True
             wait(dt)
             kf.predict(dt)
             res.loop_s.append(time.perf_counter() - w0)
@@ -746,7 +757,8 @@ class TrackingGrasp:
                 if on_event:
                     on_event("descend")
                 if line is not None:  # the line at the descent's start
-                    line = (line[0] + line[1] * (clock() - hist[-1][0]), line[1])
+                    ahead = min(clock() - hist[-1][0], cfg.coast_time)
+                    line = (line[0] + line[1] * ahead, line[1])
                 t_descend = clock()
                 try:
                     q_cmd = self._descend(
