@@ -111,7 +111,8 @@ class GraspConfig(BaseModel):
     # 0.06 m/s: the object counts as moving only when the least-squares line through its
     # measurements of the last ``still_window`` s (at least ``still_min_measurements``,
     # spanning half the window) is faster than ``final_standoff_max_speed`` too; a still
-    # object's descent follows that line. 0: the predictor alone
+    # object is servoed and descends on that line (measured: the blue stick in high light,
+    # 20 trials, seeds 0 / 1: 0.90 / 0.95 -> 1.00 / 1.00). 0: the predictor alone
     still_window: float = Field(1.0, ge=0)  # s
     still_min_measurements: int = Field(8, ge=2)
     # a still object unseen for less than this is servoed on its line and may be grasped
