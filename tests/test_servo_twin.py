@@ -72,25 +72,39 @@ def test_tracking_grasp_of_a_moving_ball(world):
     assert all(r["reason"] in ("grasped", "missed", "dropped") for r in rows), rows
 
 
+def _cleared_desk(world, lighting: str):
+    """The robot parked at the grasp desk, every object off the desk, ``lighting`` set;
+    returns ``(nominal robot, desk top z (map), T_map_arm_base)``."""
+    from mmpa.perception.dataset import DESK_PARK, desk_frame, random_table_scene
+
+    world.reset(pose2d=np.asarray(DESK_PARK, float), settle=0.2)
+    world.set_lighting(lighting)
+    random_table_scene(world, np.random.default_rng(5), [], [])  # clear the desk
+    _, top, _ = desk_frame(world)
+    return world.nominal, top, world.truth.T_map_arm_base()
+
+
+def _look_down(world, rb, top: float, height: float) -> None:
+    """The arm to the look configuration ``height`` m above the grasp experiment's look
+    target on the desk top ``top`` (map z)."""
+    from mmpa.experiments.grasp import LOOK_TARGET
+    from mmpa.servo.grasp import look_configuration
+
+    look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])
+    world.arm.move_joints(look_configuration(rb, look, height))
+
+
 def _ball_under_the_look_view(world, height: float):
     """The tennis ball alone on the cleared desk under the grasp experiment's look target,
     the arm at the look configuration ``height`` m above the desk; returns the nominal
     robot."""
     from mmpa.experiments.grasp import LOOK_TARGET
-    from mmpa.perception.dataset import DESK_PARK, desk_frame, random_table_scene
-    from mmpa.servo.grasp import look_configuration
 
-    world.reset(pose2d=np.asarray(DESK_PARK, float), settle=0.2)
-    world.set_lighting("normal")
-    random_table_scene(world, np.random.default_rng(5), [], [])  # clear the desk
-    _, top, _ = desk_frame(world)
-    rb = world.nominal
-    T_map_B = world.truth.T_map_arm_base()
+    rb, top, T_map_B = _cleared_desk(world, "normal")
     p_map = (T_map_B @ np.array([LOOK_TARGET[0], LOOK_TARGET[1], 0.0, 1.0]))[:3]
     world.place_object("tennis_ball", np.array([p_map[0], p_map[1], top + 0.034]))
     world.step(0.3)
-    look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])
-    world.arm.move_joints(look_configuration(rb, look, height))
+    _look_down(world, rb, top, height)
     return rb
 
 
@@ -213,22 +227,15 @@ def _bottle_under_the_first_view(world, cfg: GraspConfig):
     the yida bottle (water bottle score < 0.05). Runs the tracking grasp; returns its result
     and the bottle's height above the desk top 2 s after the lift (physics)."""
     from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, run_grasp
-    from mmpa.perception.dataset import DESK_PARK, _footprint, desk_frame, random_table_scene
+    from mmpa.perception.dataset import _footprint
     from mmpa.perception.ssd import Detector
-    from mmpa.servo.grasp import look_configuration
 
-    world.reset(pose2d=np.asarray(DESK_PARK, float), settle=0.2)
-    world.set_lighting("high")
-    random_table_scene(world, np.random.default_rng(5), [], [])  # clear the desk
-    _, top, _ = desk_frame(world)
-    rb = world.nominal
-    T_map_B = world.truth.T_map_arm_base()
+    rb, top, T_map_B = _cleared_desk(world, "high")
     p_map = (T_map_B @ np.array([LOOK_TARGET[0], LOOK_TARGET[1], 0.0, 1.0]))[:3]
     _, h = _footprint(world, "water_bottle")
     world.place_object("water_bottle", np.array([p_map[0], p_map[1], top + h + 0.001]))
     world.step(0.3)
-    look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])
-    world.arm.move_joints(look_configuration(rb, look, LOOK_HEIGHT))
+    _look_down(world, rb, top, LOOK_HEIGHT)
     g = TrackingGrasp(Detector.load(), rb, cfg)
     res = run_grasp(world, g, "water_bottle", world.step)
     world.step(2.0)
@@ -288,17 +295,10 @@ def test_top_center_of_a_lying_stick_beside_a_taller_cup(world):
     highest pixels of the box (the cup's rim, 45 mm off)."""
     from mmpa.experiments.grasp import LOOK_TARGET, SERVO_RESOLUTION
     from mmpa.geometry import apply, inv
-    from mmpa.perception.dataset import DESK_PARK, desk_frame, random_table_scene
     from mmpa.robot.kinematics import fk
-    from mmpa.servo.grasp import look_configuration
     from mmpa.servo.target import desk_height, top_surface
 
-    world.reset(pose2d=np.asarray(DESK_PARK, float), settle=0.2)
-    world.set_lighting("normal")
-    random_table_scene(world, np.random.default_rng(5), [], [])  # clear the desk
-    _, top, _ = desk_frame(world)
-    rb = world.nominal
-    T_map_B = world.truth.T_map_arm_base()
+    rb, top, T_map_B = _cleared_desk(world, "normal")
     c = np.array([LOOK_TARGET[0], LOOK_TARGET[1], 0.0])
     a = np.array([np.cos(0.6), np.sin(0.6), 0.0])  # the stick's axis in arm_base
     n = np.array([-a[1], a[0], 0.0])
@@ -313,8 +313,7 @@ def test_top_center_of_a_lying_stick_beside_a_taller_cup(world):
     p_cup = apply(T_map_B, c + 0.04 * a - 0.055 * n)
     world.place_object("paper_cup", np.array([p_cup[0], p_cup[1], top + 0.046]))
     world.step(0.5)
-    look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])
-    world.arm.move_joints(look_configuration(rb, look, 0.35))
+    _look_down(world, rb, top, 0.35)
     world.camera.set_resolution(*SERVO_RESOLUTION)
     try:
         frame = world.camera.capture()

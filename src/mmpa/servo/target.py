@@ -197,12 +197,13 @@ def top_surface(
             P.reshape(*shape, 3), zc.reshape(shape), gap_abs + gap_rel * foot.reshape(shape)
         )
         lab = lab.ravel()[keep]  # per point of p
+        uk, vk = uu[keep], vv[keep]  # the pixel of each point of p
         fits = []  # (IoU with the box, median height, label)
         for k in range(n):
             m = lab == k
             if m.sum() < min_points:
                 continue
-            u, v = uu[keep][m], vv[keep][m]
+            u, v = uk[m], vk[m]
             iou = _iou((u.min(), v.min(), u.max() + stride, v.max() + stride), (x1, y1, x2, y2))
             fits.append((iou, float(np.median(p[m, 2])), k))
         if not fits:
