@@ -364,3 +364,69 @@ def test_a_still_object_lost_on_the_approach_is_grasped_on_its_line(world, still
         assert np.hypot(row["close_dx"], row["close_dy"]) < 0.015
     else:
         assert not row["grasped"] and row["reason"] == "timeout", row
+
+
+@pytest.mark.parametrize("attempts", [1, 3])
+def test_a_missed_grasp_is_tried_again(world, attempts):
+    """The ball is snatched 12 cm aside as the gripper starts to close, which then closes on
+    nothing. With ``max_attempts`` 3 the gripper opens, the arm tracks the ball again and
+    the second attempt holds it (physics: off the desk 2 s later, between the fingers); with
+    one attempt the run ends "missed"."""
+    from mmpa.experiments.grasp import LOOK_HEIGHT, SERVO_RESOLUTION
+
+    rb = _ball_under_the_look_view(world, LOOK_HEIGHT)
+    top = world.scene.grasp_desk.size[2]
+    T_map_B = world.truth.T_map_arm_base()
+    g = TrackingGrasp(OracleDetector(world), rb, GraspConfig(max_attempts=attempts, max_time=15.0))
+    events: list[str] = []
+
+    def on_event(e: str) -> None:
+        events.append(e)
+        if e == "close" and events.count("close") == 1:
+            p = world.truth.T_map_object("tennis_ball")[:3, 3]
+            aside = T_map_B[:3, :3] @ np.array([0.0, 0.12, 0.0])
+            world.place_object("tennis_ball", p + aside)
+
+    world.camera.set_resolution(*SERVO_RESOLUTION)
+    try:
+        res = g.run(
+            "tennis_ball", world.arm, world.gripper, world.camera, world.base, world.step,
+            lambda: world.time, on_event=on_event,
+        )  # fmt: skip
+    finally:
+        world.camera.set_resolution(640, 480)
+    world.step(2.0)
+    p_obj = world.truth.T_map_object("tennis_ball")[:3, 3]
+    held = p_obj[2] > top + 0.04 and np.linalg.norm(p_obj - world.truth.T_map_tcp()[:3, 3]) < 0.12
+    if attempts == 1:
+        assert res.reason == "missed" and res.attempts == 1 and not held
+        assert "retry" not in events
+    else:
+        assert res.reason == "grasped" and res.attempts == 2 and held, (res, events)
+        assert events.count("retry") == 1 and events.count("close") == 2
+
+
+def test_the_operator_takes_the_object_again_after_a_miss(world):
+    """After ``release`` the object lies still; ``resume`` (a missed grasp) moves it again at
+    the operator's speed from where it lies; an object off the desk stays where it is."""
+    from mmpa.experiments.grasp import Operator
+
+    _ball_under_the_look_view(world, 0.45)
+    op = Operator(world, "tennis_ball", 0.1, np.random.default_rng(1))
+
+    def moved(dt: float) -> float:
+        p0 = world.truth.T_map_object("tennis_ball")[:2, 3].copy()
+        op.step(dt)
+        return float(np.linalg.norm(world.truth.T_map_object("tennis_ball")[:2, 3] - p0))
+
+    assert moved(0.2) == pytest.approx(0.02, abs=0.004)
+    op.release()
+    assert moved(0.2) < 0.002
+    op.resume()
+    assert moved(0.2) == pytest.approx(0.02, abs=0.004)
+    op.release()
+    p = world.truth.T_map_object("tennis_ball")[:3, 3]
+    world.place_object("tennis_ball", np.array([p[0], p[1], 0.1]))  # on the floor
+    world.step(0.3)
+    op.resume()
+    assert moved(0.2) < 0.002
