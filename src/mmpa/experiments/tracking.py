@@ -137,7 +137,7 @@ def _plot(rows: list[dict[str, Any]], cfg: Config, ctx: Context) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = plt.subplots(figsize=(6, 5))
 
     def rate(key: str, speed: float, pred: bool) -> float:
         return float(
@@ -158,7 +158,7 @@ def _plot(rows: list[dict[str, Any]], cfg: Config, ctx: Context) -> str:
     ax.set_xlabel("object speed (m/s)")
     ax.set_ylabel("tracking grasp success")
     ax.set_ylim(-0.05, 1.05)
-    ax.legend()
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, fontsize="small")
     fig.tight_layout()
     path = ctx.out / "tracking_success.png"
     fig.savefig(path, dpi=100)
