@@ -217,9 +217,10 @@ class GraspConfig(BaseModel):
 
 @dataclass
 class GraspResult:
-    """``closed_on_object``: the fingers stopped on something; ``reason``: "grasped",
-    "not found", "unreachable", "timeout", "depth"; times in s. ``found_view``: where the
-    target was first found: 0 the starting view, k >= 1 the k-th second view taken
+    """``closed_on_object``: the fingers stopped on something and still hold it after the
+    lift (the last attempt); ``reason``: "grasped", "missed", "not found", "unreachable",
+    "timeout", "depth"; times in s. ``found_view``: where the target was first found: 0 the
+    starting view, k >= 1 the k-th second view taken
     (``GraspConfig.search_views``), -1 never; ``views``: second views taken; ``descent_s``:
     s from the start of the (last) descent to its close (NaN: no descent); ``attempts``:
     closes of the gripper (``GraspConfig.max_attempts``)."""
