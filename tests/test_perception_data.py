@@ -12,6 +12,7 @@ from mmpa.perception.dataset import DatasetConfig, load_dataset, render_dataset,
 from mmpa.perception.locate import (
     DepthMissingError,
     box_center_depth,
+    box_iou,
     deproject,
     grasp_axis_from_box,
     locate,
@@ -135,3 +136,15 @@ def test_deproject_project_round_trip_and_axis():
     assert box_center_depth(d, np.array([4, 4, 7, 7]), mode="median") == pytest.approx(0.7)
     with pytest.raises(DepthMissingError):
         box_center_depth(d, np.array([0, 0, 2, 2]), mode="center")
+
+
+def test_box_iou_against_areas_by_hand():
+    """Two 2x2 boxes overlapping in a 1x2 strip: 2 / (4 + 4 - 2); disjoint: 0; the same: 1;
+    every pair of (N, 4) x (M, 4)."""
+    a = np.array([[0.0, 0.0, 2.0, 2.0], [10.0, 10.0, 12.0, 12.0]])
+    b = np.array([[1.0, 0.0, 3.0, 2.0], [0.0, 0.0, 2.0, 2.0], [5.0, 5.0, 6.0, 6.0]])
+    iou = box_iou(a, b)
+    assert iou.shape == (2, 3)
+    assert iou[0] == pytest.approx([1 / 3, 1.0, 0.0])
+    assert iou[1] == pytest.approx([0.0, 0.0, 0.0])
+    assert box_iou(a[0], b[0]).shape == (1, 1)

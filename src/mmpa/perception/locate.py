@@ -23,6 +23,7 @@ from mmpa.geometry import Array, apply, make_T
 __all__ = [
     "DepthMissingError",
     "Location",
+    "box_iou",
     "deproject",
     "grasp_axis_from_box",
     "grasp_yaw_from_mask",
@@ -70,6 +71,19 @@ def project(p: Array, K: Array) -> Array:
         [K[0, 0] * p[..., 0] / p[..., 2] + K[0, 2], K[1, 1] * p[..., 1] / p[..., 2] + K[1, 2]],
         axis=-1,
     )
+
+
+def box_iou(a: Array, b: Array) -> Array:
+    """Intersection over union of every box of ``a`` (N, 4) with every box of ``b`` (M, 4),
+    boxes ``[x1, y1, x2, y2]`` (pixels): (N, M)."""
+    a = np.asarray(a, float).reshape(-1, 4)
+    b = np.asarray(b, float).reshape(-1, 4)
+    lt = np.maximum(a[:, None, :2], b[None, :, :2])
+    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
+    inter = np.clip(rb - lt, 0, None).prod(-1)
+    aa = (a[:, 2:] - a[:, :2]).prod(-1)
+    ab = (b[:, 2:] - b[:, :2]).prod(-1)
+    return inter / np.maximum(aa[:, None] + ab[None] - inter, 1e-12)
 
 
 def box_center_depth(depth: Array, box: Array, window: int = 2, mode: str = "median") -> float:

@@ -25,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.perception import CLASSES, LIGHTING_CONDITIONS
 from mmpa.perception.dataset import Dataset
+from mmpa.perception.locate import box_iou
 from mmpa.perception.preprocess import dark_preprocess
 from mmpa.perception.ssd import (
     SSD,
@@ -212,15 +213,6 @@ def average_precision(tp: np.ndarray, scores: np.ndarray, n_gt: int) -> float:
     return float(np.sum((mrec[i + 1] - mrec[i]) * mpre[i + 1]))
 
 
-def _iou_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    lt = np.maximum(a[:, None, :2], b[None, :, :2])
-    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
-    inter = np.clip(rb - lt, 0, None).prod(-1)
-    aa = (a[:, 2:] - a[:, :2]).prod(-1)
-    ab = (b[:, 2:] - b[:, :2]).prod(-1)
-    return inter / np.maximum(aa[:, None] + ab[None] - inter, 1e-12)
-
-
 @dataclass
 class EvalResult:
     """``ap``: per-class AP@0.5; ``success``: detection success per lighting condition and
@@ -251,7 +243,7 @@ def _tp_flags(dets: list[Detection], gt_b: np.ndarray, gt_l: np.ndarray, c: int)
     flags = []
     for x in d:  # dets are sorted by score
         if len(g):
-            iou = _iou_np(x.box[None], g)[0]
+            iou = box_iou(x.box[None], g)[0]
             j = int(np.argmax(iou))
             if iou[j] >= 0.5 and not used[j]:
                 used[j] = True
@@ -391,7 +383,7 @@ def _work_view_success(
                 res.work_hidden += 1
                 continue
             d = [x for x in low[i] if x.score >= th and x.label == c]
-            if d and _iou_np(np.array([x.box for x in d]), g).max() >= 0.5:
+            if d and box_iou(np.array([x.box for x in d]), g).max() >= 0.5:
                 hit[c] += 1
         res.work_success[cond] = {
             classes[c]: float(hit[c] / tot[c]) if tot[c] else float("nan")

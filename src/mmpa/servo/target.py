@@ -44,6 +44,7 @@ from scipy.sparse.csgraph import connected_components
 
 from mmpa.errors import InvalidInputError
 from mmpa.geometry import Array
+from mmpa.perception.locate import box_iou
 
 __all__ = ["TopSurface", "box_points", "desk_height", "grasp_height", "surfaces", "top_surface"]
 
@@ -137,20 +138,11 @@ def surfaces(points: Array, depth: Array, gap: float) -> tuple[int, Array]:
     adj = coo_matrix((np.ones(len(r), bool), (r, c)), shape=(h * w, h * w))
     _, lab = connected_components(adj, directed=False)
     lab = lab.reshape(h, w)
-    lab[~ok] = -1
     keep = np.unique(lab[ok])
     relabel = np.full(h * w, -1)
     relabel[keep] = np.arange(len(keep))
     out = np.where(ok, relabel[np.maximum(lab, 0)], -1)
     return len(keep), out
-
-
-def _iou(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> float:
-    iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    ih = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = iw * ih
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / union if union > 0 else 0.0
 
 
 def top_surface(
@@ -204,7 +196,8 @@ def top_surface(
             if m.sum() < min_points:
                 continue
             u, v = uk[m], vk[m]
-            iou = _iou((u.min(), v.min(), u.max() + stride, v.max() + stride), (x1, y1, x2, y2))
+            fit = (u.min(), v.min(), u.max() + stride, v.max() + stride)
+            iou = float(box_iou(fit, (x1, y1, x2, y2))[0, 0])
             fits.append((iou, float(np.median(p[m, 2])), k))
         if not fits:
             return None
