@@ -157,6 +157,20 @@ def run_grasp(
         world.camera.set_resolution(*before)
 
 
+def held_in_the_physics(world: Any, name: str, top: float, hold: float = 2.0) -> bool:
+    """The experiments' grasp success (truth): after ``hold`` s more of physics the object
+    ``name`` is over 4 cm above the desk top ``top`` (map z), within 12 cm of the TCP, and the
+    fingers have not closed on nothing."""
+    world.step(hold)
+    p_obj = world.truth.T_map_object(name)[:3, 3]
+    p_tcp = world.truth.T_map_tcp()[:3, 3]
+    return bool(
+        p_obj[2] > top + 0.04
+        and np.linalg.norm(p_obj - p_tcp) < 0.12
+        and world.gripper.width() > 0.004
+    )
+
+
 def grasp_trial(
     world: Any,
     grasper: Any,
@@ -207,14 +221,7 @@ def grasp_trial(
 
     res = run_grasp(world, grasper, name, wait, on_event, resolution)
     op.release()
-    world.step(2.0)  # hold for 2 s in the physics
-    p_obj = world.truth.T_map_object(name)[:3, 3]
-    p_tcp = world.truth.T_map_tcp()[:3, 3]
-    held = bool(
-        p_obj[2] > top + 0.04
-        and np.linalg.norm(p_obj - p_tcp) < 0.12
-        and world.gripper.width() > 0.004
-    )
+    held = held_in_the_physics(world, name, top)
     del inv
     reason = res.reason if held or res.reason != "grasped" else "dropped"
     return {

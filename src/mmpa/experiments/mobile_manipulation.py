@@ -211,7 +211,7 @@ def place_trial_objects(world: Any, rng: np.random.Generator, name: str, others:
 
 def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
     """One run (module doc); truth read only for the evaluation columns."""
-    from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, run_grasp
+    from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, held_in_the_physics, run_grasp
     from mmpa.geometry import inv, se2_to_T
     from mmpa.localization.localizer import make_localizer
     from mmpa.navigation.mission import laser_pose2d, navigate, twin_map, twin_nav_map
@@ -273,14 +273,7 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
         q_look = look_configuration(rb, look, LOOK_HEIGHT)
         world.arm.move_joints(q_look)
         res = run_grasp(world, grasper, name, world.step)
-        world.step(2.0)  # hold for 2 s in the physics
-        p_obj = world.truth.T_map_object(name)[:3, 3]
-        p_tcp = world.truth.T_map_tcp()[:3, 3]
-        held = bool(  # the grasp experiment's criterion
-            p_obj[2] > top + 0.04
-            and np.linalg.norm(p_obj - p_tcp) < 0.12
-            and world.gripper.width() > 0.004
-        )
+        held = held_in_the_physics(world, name, top)
         sim_t = world.time
     return {
         "object": name,
