@@ -3,6 +3,11 @@
 Defaults live in code (each stage's pydantic model); a YAML file overrides some of them and
 ``--set a.b=value`` overrides single fields (the value is parsed as YAML, so ``3``, ``0.5``,
 ``true``, ``[1, 2]`` work). The final configuration is saved next to every result.
+
+Setting a section's ``profile`` (``--set errors.profile=harsh``, what ``--profile`` does)
+re-bases that section: its other fields, except ``seed``, are dropped so that the profile
+supplies them, then later overrides apply on top. A saved ``config.yaml`` lists every field,
+so loading it with another profile does what one expects.
 """
 
 from __future__ import annotations
@@ -38,9 +43,13 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
                     raise ConfigError(f"override {item!r}: {p!r} is not a section")
             node = node[p]
         try:
-            node[parts[-1]] = yaml.safe_load(raw)
+            value = yaml.safe_load(raw)
         except yaml.YAMLError as e:
             raise ConfigError(f"override {item!r}: value is not valid YAML ({e})") from None
+        if parts[-1] == "profile":  # re-base the section on the profile (module docstring)
+            for k in [k for k in node if k not in ("seed", "profile")]:
+                del node[k]
+        node[parts[-1]] = value
     return out
 
 
@@ -48,7 +57,8 @@ def load_config(
     model: type[M], path: str | Path | None = None, overrides: list[str] | None = None
 ) -> M:
     """Defaults of ``model``, then the YAML file at ``path``, then ``overrides``."""
-    data: dict[str, Any] = model().model_dump(mode="json")
+    # only what is set explicitly: sections with a profile fill the rest when validated
+    data: dict[str, Any] = model().model_dump(mode="json", exclude_unset=True)
     if path is not None:
         try:
             loaded = yaml.safe_load(Path(path).read_text())
