@@ -26,3 +26,17 @@ DbOpt = Annotated[
         help="Task database (default: $MMPA_TASKS_DB or ~/.local/share/mmpa/tasks.db).",
     ),
 ]
+
+ProfileOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--profile",
+        help="Twin error model profile: ideal, reference, realistic (the default), harsh.",
+    ),
+]
+
+
+def profile_overrides(profile: str | None) -> list[str]:
+    """The ``--set`` overrides of ``--profile NAME`` (they go first: later ``--set
+    errors....`` overrides apply on top of the profile)."""
+    return [] if profile is None else [f"errors.profile={profile}"]

@@ -14,7 +14,7 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from mmpa.cli.common import DbOpt, console, fail
+from mmpa.cli.common import DbOpt, ProfileOpt, console, fail, profile_overrides
 from mmpa.cli.perception import perception_app
 from mmpa.cli.tasks import tasks_app
 from mmpa.errors import MMPAError
@@ -36,12 +36,16 @@ ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="YAML con
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="Override: key=value (repeat).")]
 
 
-def _demo_config(config: Path | None, seed: int, set_: list[str] | None) -> DemoConfig:
-    """DemoConfig from defaults, the YAML file, ``--seed`` and ``--set`` (in that order)."""
+def _demo_config(
+    config: Path | None, seed: int, set_: list[str] | None, profile: str | None = None
+) -> DemoConfig:
+    """DemoConfig from defaults, the YAML file, ``--profile``, ``--seed`` and ``--set`` (in
+    that order)."""
     from mmpa.config import load_config
     from mmpa.experiments.demo import DemoConfig
 
-    return load_config(DemoConfig, config, [f"errors.seed={seed}", *(set_ or [])])
+    sets = [*profile_overrides(profile), f"errors.seed={seed}", *(set_ or [])]
+    return load_config(DemoConfig, config, sets)
 
 
 def _show(summary: dict, title: str) -> None:
@@ -63,6 +67,7 @@ def version() -> None:
 def demo(
     out: Annotated[Path, typer.Option(help="Run folder to write.")] = Path("runs/demo"),
     seed: Annotated[int, typer.Option(help="Robot instance / noise seed.")] = 0,
+    profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
 ) -> None:
@@ -70,7 +75,7 @@ def demo(
     from mmpa.experiments.demo import run_demo
 
     try:
-        cfg = _demo_config(config, seed, set_)
+        cfg = _demo_config(config, seed, set_, profile)
         with Progress(
             TextColumn("{task.description}"),
             BarColumn(),
@@ -97,6 +102,7 @@ def sim_snapshot(
     site: Annotated[str, typer.Option(help="Site name of the scene (e.g. 0, 1, 2, 2').")] = "1",
     out: Annotated[Path, typer.Option(help="Folder to write.")] = Path("runs/snapshot"),
     seed: Annotated[int, typer.Option(help="Robot instance / noise seed.")] = 0,
+    profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
 ) -> None:
@@ -104,7 +110,7 @@ def sim_snapshot(
     from mmpa.experiments.demo import snapshot
 
     try:
-        cfg = _demo_config(config, seed, set_)
+        cfg = _demo_config(config, seed, set_, profile)
         summary = snapshot(cfg, site, out)
     except MMPAError as e:
         fail(e)
@@ -119,6 +125,7 @@ def experiment(
     trials: Annotated[int | None, typer.Option(help="Trials (default: the paper's count).")] = None,
     seed: Annotated[int, typer.Option(help="Seed of every random draw.")] = 0,
     out: Annotated[Path | None, typer.Option(help="Run folder (default runs/NAME).")] = None,
+    profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
 ) -> None:
@@ -152,6 +159,7 @@ def experiment(
                 out,
                 seed=seed,
                 trials=trials,
+                profile=profile,
                 config=config,
                 overrides=set_ or [],
                 progress=progress,
@@ -161,11 +169,14 @@ def experiment(
     _show(outcome.summary, f"mmpa experiment {name} -> {out} (report.md, results.csv)")
 
 
-def _mmpa_config(config: Path | None, seed: int, set_: list[str] | None):
+def _mmpa_config(
+    config: Path | None, seed: int, set_: list[str] | None, profile: str | None = None
+):
     from mmpa.config import load_config
     from mmpa.experiments.mmpa_common import MMPAExperimentConfig
 
-    return load_config(MMPAExperimentConfig, config, [f"errors.seed={seed}", *(set_ or [])])
+    sets = [*profile_overrides(profile), f"errors.seed={seed}", *(set_ or [])]
+    return load_config(MMPAExperimentConfig, config, sets)
 
 
 @app.command()
@@ -175,6 +186,7 @@ def teach(
     db: DbOpt = None,
     seed: Annotated[int, typer.Option(help="Robot instance / noise seed.")] = 0,
     overwrite: Annotated[bool, typer.Option(help="Replace a stored task of that name.")] = False,
+    profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
 ) -> None:
@@ -184,7 +196,11 @@ def teach(
     try:
         with console.status(f"teaching {task} at site {site}"):
             summary = teach_task(
-                site, task, db=db, cfg=_mmpa_config(config, seed, set_), overwrite=overwrite
+                site,
+                task,
+                db=db,
+                cfg=_mmpa_config(config, seed, set_, profile),
+                overwrite=overwrite,
             )
     except MMPAError as e:
         fail(e)
@@ -201,6 +217,7 @@ def run_cmd(
     seed: Annotated[int, typer.Option(help="Robot instance / noise seed (as taught).")] = 0,
     trial: Annotated[int, typer.Option(help="Which parking draw of this seed.")] = 0,
     tmma: Annotated[bool, typer.Option(help="Also replay the taught joints (TMMA).")] = False,
+    profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
 ) -> None:
@@ -213,7 +230,7 @@ def run_cmd(
                 task,
                 site=site,
                 db=db,
-                cfg=_mmpa_config(config, seed, set_),
+                cfg=_mmpa_config(config, seed, set_, profile),
                 trial=trial,
                 tmma=tmma,
             )

@@ -28,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.fiducial_search import SearchConfig, make_strategy, run_pass
+from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.moving_base import KinematicMovingBase, MovingBaseNoise
 from mmpa.sim.world import SimWorld
 
@@ -52,6 +53,7 @@ class Config(BaseModel):
     )
     heading_deg: float = 0.0
     noise: MovingBaseNoise = MovingBaseNoise()
+    errors: ErrorModelConfig = ErrorModelConfig()  # the twin robot (its seed: the instance)
     search: SearchConfig = SearchConfig()
     tilt_study: bool = True
     tilt_sigma_deg: float = Field(5.0, ge=0)  # base roll/pitch SD in the tilt study
@@ -177,7 +179,7 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             for r in range(reps)
         ]
     rows: list[dict[str, Any]] = []
-    with SimWorld(site="0") as world:
+    with SimWorld(site="0", errors=cfg.errors) as world:
         for k, (study, s, v, r, noise) in enumerate(jobs):
             t0 = time.perf_counter()
             rows.append(_pass(world, cfg, s, v, r, noise, study))

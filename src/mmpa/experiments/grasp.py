@@ -23,6 +23,7 @@ from pydantic import BaseModel, Field
 from mmpa.experiments.runner import Context, Outcome, markdown_table
 from mmpa.perception import CLASSES, LIGHTING_CONDITIONS
 from mmpa.servo.grasp import GraspConfig
+from mmpa.sim.error_model import ErrorModelConfig
 
 PAPER = "paper 001 Table 3 (success rate per object and light condition, 20 trials each)"
 
@@ -59,6 +60,7 @@ class Config(BaseModel):
     max_time: float = 15.0  # s of simulated time per trial (all its attempts)
     threads: int = 1  # torch threads of the detector
     servo: GraspConfig = Field(default_factory=GraspConfig)  # the tracking grasp's settings
+    errors: ErrorModelConfig = ErrorModelConfig()  # the twin robot (its seed: the instance)
 
     def n_trials(self) -> int:
         return 20 if self.trials is None else self.trials
@@ -433,7 +435,7 @@ def run(cfg: Config, ctx: Context, progress: Callable[[str, float], None] | None
     n = cfg.n_trials()
     rows = []
     total = len(cfg.objects) * len(cfg.lighting) * n
-    with SimWorld(site="0") as world:
+    with SimWorld(site="0", errors=cfg.errors) as world:
         grasper = make_grasper(cfg, world)
         lights = list(world.LIGHTING)
         for obj in cfg.objects:

@@ -117,13 +117,21 @@ def run_experiment(
     *,
     seed: int | None = None,
     trials: int | None = None,
+    profile: str | None = None,
     config: str | Path | None = None,
     overrides: Sequence[str] = (),
     progress: Progress | None = None,
 ) -> Outcome:
-    """Run experiment ``name`` and write its run folder (see the module docstring)."""
+    """Run experiment ``name`` and write its run folder (see the module docstring).
+
+    ``profile`` picks the twin's error model profile (``errors.profile``; later ``--set
+    errors....`` overrides apply on top); the summary and the report record the profile."""
     mod = experiment_module(name)
     sets = []
+    if profile is not None:
+        if "errors" not in mod.Config.model_fields:
+            raise ConfigError(f"experiment {name!r} runs no twin error model: --profile is moot")
+        sets.append(f"errors.profile={profile}")
     if seed is not None:
         sets.append(f"seed={seed}")
     if trials is not None:
@@ -142,9 +150,14 @@ def run_experiment(
     outcome: Outcome = mod.run(cfg, ctx)
     wall = time.perf_counter() - t0
     outcome.summary.setdefault("wall_seconds", round(wall, 2))
+    errors = getattr(cfg, "errors", None)
+    if errors is not None:
+        outcome.summary.setdefault("profile", errors.profile)
     write_csv(out / "results.csv", outcome.rows)
     (out / "summary.json").write_text(json.dumps(_jsonable(outcome.summary), indent=2) + "\n")
     head = f"# mmpa experiment {name}\n\nReproduces {mod.PAPER}.\n\n"
+    if errors is not None:
+        head += f"Twin error model: profile `{errors.profile}` (seed {errors.seed}).\n\n"
     (out / "report.md").write_text(head + outcome.report.rstrip() + "\n")
     return outcome
 

@@ -20,6 +20,7 @@ from mmpa.experiments.grasp import Config as GraspExperimentConfig
 from mmpa.experiments.grasp import grasp_trial, make_grasper
 from mmpa.experiments.runner import Context, Outcome, markdown_table
 from mmpa.servo.grasp import GraspConfig
+from mmpa.sim.error_model import ErrorModelConfig
 
 PAPER = "paper 001 §4.3.3 (tracking grasp of a moving object; works below 0.1 m/s)"
 PAPER_LIMIT = 0.1  # m/s
@@ -37,6 +38,7 @@ class Config(BaseModel):
     others: int = 1
     max_time: float = 15.0  # s of simulated time per trial (all its attempts)
     servo: GraspConfig = Field(default_factory=GraspConfig)  # the tracking grasp's settings
+    errors: ErrorModelConfig = ErrorModelConfig()  # the twin robot (its seed: the instance)
 
     def n_trials(self) -> int:
         return 10 if self.trials is None else self.trials
@@ -48,7 +50,7 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     n = cfg.n_trials()
     rows: list[dict[str, Any]] = []
     total = len(cfg.speeds) * len(cfg.predictor) * n
-    with SimWorld(site="0") as world:
+    with SimWorld(site="0", errors=cfg.errors) as world:
         for pred in cfg.predictor:
             gcfg = GraspExperimentConfig(
                 weights=cfg.weights,

@@ -1,4 +1,4 @@
-"""Pure sensor-noise functions of the reference error model (DESIGN.md, "Truth and belief").
+"""Pure sensor-noise functions of the error model (DESIGN.md, "Truth and belief", "Error model v2").
 
 Every function takes the noise-free measurement as a numpy array and a
 ``numpy.random.Generator``; every random draw goes through that generator, so the same
@@ -19,10 +19,15 @@ __all__ = [
     "axial_depth_sigma",
     "bernoulli_indices",
     "color_noise",
+    "color_session_gain",
+    "correlated_field",
+    "depth_bias_pattern",
     "depth_edges",
     "depth_noise",
     "odometry_increment_noise",
     "range_noise",
+    "resample_to",
+    "session_disparity",
     "standard_normal_f32",
 ]
 
@@ -117,6 +122,118 @@ def depth_edges(depth: np.ndarray, threshold: float) -> tuple[np.ndarray, np.nda
     return best > threshold, other
 
 
+def correlated_field(
+    rng: np.random.Generator, shape: tuple[int, int], corr_px: float
+) -> np.ndarray:
+    """A stationary Gaussian random field of unit variance, float32 ``shape``: white noise
+    smoothed by a Gaussian kernel of SD ``corr_px`` pixels (so the field's autocorrelation is
+    Gaussian with SD ``sqrt(2) corr_px``), normalized by its sample SD. ``corr_px = 0`` gives
+    white noise."""
+    from scipy.ndimage import gaussian_filter
+
+    f = rng.standard_normal(shape).astype(np.float32)
+    if corr_px > 0:
+        f = gaussian_filter(f, sigma=float(corr_px), mode="reflect")
+    sd = float(f.std())
+    return f / np.float32(sd) if sd > 0 else f
+
+
+def _image_coords(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates relative to the image centre, in units of half the image width
+    (``u`` in [-1, 1] across the width, ``v`` likewise scaled), float32 (H, W) each."""
+    h, w = shape
+    half = np.float32(w / 2.0)
+    u = (np.arange(w, dtype=np.float32) - np.float32((w - 1) / 2.0)) / half
+    v = (np.arange(h, dtype=np.float32) - np.float32((h - 1) / 2.0)) / half
+    return np.broadcast_to(u[None, :], shape), np.broadcast_to(v[:, None], shape)
+
+
+def session_disparity(
+    shape: tuple[int, int], rng: np.random.Generator, cfg: CameraNoise
+) -> np.ndarray:
+    """The disparity error (px, float32 ``shape``) fixed for one session of the depth camera.
+
+    Sum of (DESIGN.md "Error model v2"):
+
+    - the correlated part of the per-pixel noise,
+      ``sqrt(correlated_fraction) subpixel F``, ``F`` a unit-variance
+      :func:`correlated_field` with ``correlation_px`` (librealsense #1375, #4286: a 10-frame
+      average is still wavy);
+    - a disparity offset ``N(0, session_offset_px)``;
+    - a gradient ``g . (u, v)`` with ``g ~ N(0, session_gradient_px)`` per axis, ``(u, v)``
+      the pixel position from the centre in half image widths (``g_x`` is the value at the
+      left/right edge);
+    - a low-frequency wave ``a sin(2 pi (u cos t + v sin t) / L + phi)``, ``a ~
+      N(0, sqrt(2) session_wave_px)`` (its RMS over the image has SD ``session_wave_px``),
+      direction ``t`` and phase uniform, wavelength ``L`` uniform in [1, 3] half widths.
+
+    All draws come from ``rng`` in a fixed order.
+    """
+    out = np.zeros(shape, dtype=np.float32)
+    if cfg.correlated_fraction > 0 and cfg.subpixel > 0:
+        f = correlated_field(rng, shape, cfg.correlation_px)
+        out += f * np.float32(np.sqrt(cfg.correlated_fraction) * cfg.subpixel)
+    u, v = _image_coords(shape)
+    offset = rng.normal(0.0, cfg.session_offset_px)
+    g = rng.normal(0.0, cfg.session_gradient_px, 2)
+    a = rng.normal(0.0, np.sqrt(2.0) * cfg.session_wave_px)
+    t, phi = rng.uniform(0.0, 2.0 * np.pi, 2)
+    wavelength = rng.uniform(1.0, 3.0)
+    out += np.float32(offset)
+    out += np.float32(g[0]) * u + np.float32(g[1]) * v
+    phase = (u * np.float32(np.cos(t)) + v * np.float32(np.sin(t))) * np.float32(
+        2.0 * np.pi / wavelength
+    )
+    out += np.float32(a) * np.sin(phase + np.float32(phi))
+    return out
+
+
+def depth_bias_pattern(
+    shape: tuple[int, int], rng: np.random.Generator, sd_px: float
+) -> np.ndarray:
+    """The fixed ring-shaped disparity bias of one depth camera (px, float32 ``shape``):
+    ``sqrt(2) sd_px sin(2 pi r / P + phi)``, ``r`` the distance (px) from a centre drawn
+    ``N(0, W / 10)`` around the image centre, period ``P`` uniform in [40, 80] px, phase
+    uniform (librealsense #3210, realsense-ros #1534: concentric rings, ~1 % p-p)."""
+    h, w = shape
+    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0]) + rng.normal(0.0, w / 10.0, 2)
+    period = rng.uniform(40.0, 80.0)
+    phi = rng.uniform(0.0, 2.0 * np.pi)
+    x = np.arange(w, dtype=np.float32) - np.float32(c[0])
+    y = np.arange(h, dtype=np.float32) - np.float32(c[1])
+    r = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2)
+    amp = np.float32(np.sqrt(2.0) * sd_px)
+    return amp * np.sin(r * np.float32(2.0 * np.pi / period) + np.float32(phi))
+
+
+def color_session_gain(
+    shape: tuple[int, int], rng: np.random.Generator, cfg: CameraNoise
+) -> np.ndarray:
+    """Multiplicative colour gain (float32 (H, W, 3)) fixed for one session: exposure
+    ``1 + N(0, exposure_gain_sigma)`` times white balance ``1 + N(0, white_balance_sigma)``
+    per channel times a lighting gradient ``1 + g . (u, v)``, ``g ~
+    N(0, lighting_gradient_sigma)`` per axis (``(u, v)`` as in :func:`session_disparity`)."""
+    exposure = 1.0 + rng.normal(0.0, cfg.exposure_gain_sigma)
+    wb = 1.0 + rng.normal(0.0, cfg.white_balance_sigma, 3)
+    g = rng.normal(0.0, cfg.lighting_gradient_sigma, 2)
+    u, v = _image_coords(shape)
+    light = np.float32(1.0) + np.float32(g[0]) * u + np.float32(g[1]) * v
+    np.maximum(light, np.float32(0.0), out=light)
+    return light[..., None] * (np.float32(exposure) * wb.astype(np.float32))[None, None, :]
+
+
+def resample_to(field: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A per-pixel field of the native stream (H0, W0[, C]) at another resolution of the same
+    field of view (H, W): the native pixel nearest to each pixel's centre."""
+    h0, w0 = field.shape[:2]
+    h, w = shape
+    if (h, w) == (h0, w0):
+        return field
+    rows = np.clip(np.floor((np.arange(h) + 0.5) * h0 / h).astype(np.int64), 0, h0 - 1)
+    cols = np.clip(np.floor((np.arange(w) + 0.5) * w0 / w).astype(np.int64), 0, w0 - 1)
+    return np.ascontiguousarray(field[rows][:, cols])
+
+
 def depth_noise(
     depth: np.ndarray,
     rng: np.random.Generator,
@@ -125,6 +242,7 @@ def depth_noise(
     baseline: float,
     min_range: float,
     max_range: float,
+    fixed_disparity: np.ndarray | None = None,
 ) -> np.ndarray:
     """A D435-like depth measurement from the true depth image.
 
@@ -136,8 +254,13 @@ def depth_noise(
        ``cfg.flying_pixel_fraction`` takes a depth drawn uniformly between its own and that
        neighbour's (a point floating between fore- and background);
     2. per-capture scale error: every depth times ``1 + N(0, cfg.depth_scale_sigma)``;
-    3. axial noise ``N(0, sigma_z)``, ``sigma_z = z^2 cfg.subpixel / (f_native baseline)``
-       (:func:`standard_normal_f32` draws);
+    3. axial noise ``N(0, sigma_z)``, ``sigma_z = z^2 sqrt(1 - correlated_fraction)
+       subpixel / (f_native baseline)`` (:func:`standard_normal_f32` draws): the part of the
+       per-pixel noise that changes from frame to frame;
+       then the disparity error fixed in this session, ``fixed_disparity`` (H, W) px (the
+       correlated noise, session drift and bias pattern: :func:`session_disparity`,
+       :func:`depth_bias_pattern`): ``z -= z^2 fixed_disparity / (f_native baseline)``
+       (a larger disparity is a nearer point; the linearization of ``z = f b / d``);
     4. random holes: each pixel independently invalid with probability
        ``cfg.invalid_fraction`` (:func:`bernoulli_indices`);
     5. measurements outside ``[min_range, max_range]`` become invalid.
@@ -165,10 +288,23 @@ def depth_noise(
         zf[fly] = zf[fly] + t * (other.reshape(-1)[fly] - zf[fly])
 
     z *= np.float32(scale)
+    white = cfg.subpixel * np.sqrt(1.0 - cfg.correlated_fraction)
     noise = standard_normal_f32(rng, z.shape)
-    noise *= z
-    noise *= z
-    noise *= np.float32(cfg.subpixel / (f_native * baseline))  # sigma_z N(0, 1)
+    if fixed_disparity is not None:
+        fd = np.asarray(fixed_disparity, dtype=np.float32)
+        if fd.shape != z.shape:
+            raise InvalidInputError(
+                f"fixed_disparity must be the depth's shape {z.shape}, got {fd.shape}"
+            )
+        noise *= np.float32(white)
+        noise -= fd  # disparity error (px): per frame plus fixed
+        noise *= z
+        noise *= z
+        noise *= np.float32(1.0 / (f_native * baseline))
+    else:
+        noise *= z
+        noise *= z
+        noise *= np.float32(white / (f_native * baseline))  # sigma_z N(0, 1)
     z += noise
 
     keep = valid & (z >= min_range) & (z <= max_range)
@@ -177,10 +313,16 @@ def depth_noise(
     return z
 
 
-def color_noise(rgb: np.ndarray, rng: np.random.Generator, cfg: CameraNoise) -> np.ndarray:
+def color_noise(
+    rgb: np.ndarray,
+    rng: np.random.Generator,
+    cfg: CameraNoise,
+    gain: np.ndarray | None = None,
+) -> np.ndarray:
     """Lighting gain then per-pixel Gaussian noise on an RGB image.
 
-    ``rgb`` (H, W, 3) uint8. Intensities in [0, 1] are multiplied by ``cfg.lighting_gain``, get
+    ``rgb`` (H, W, 3) uint8. Intensities in [0, 1] are multiplied by ``cfg.lighting_gain``
+    and by the session's ``gain`` (H, W, 3) when given (:func:`color_session_gain`), get
     ``N(0, cfg.color_sigma)`` per channel (:func:`standard_normal_f32` draws), are clipped to
     [0, 1] and rounded back to uint8 (computed in float32, in units of 1/255).
     """
@@ -189,7 +331,15 @@ def color_noise(rgb: np.ndarray, rng: np.random.Generator, cfg: CameraNoise) -> 
         raise InvalidInputError(f"color must be (H, W, 3), got {c.shape}")
     f = standard_normal_f32(rng, c.shape)
     f *= np.float32(255.0 * cfg.color_sigma)
-    f += c.astype(np.float32) * np.float32(cfg.lighting_gain)
+    lit = c.astype(np.float32) * np.float32(cfg.lighting_gain)
+    if gain is not None:
+        g = np.asarray(gain, dtype=np.float32)
+        if g.shape != c.shape:
+            raise InvalidInputError(
+                f"colour gain must be the image's shape {c.shape}, got {g.shape}"
+            )
+        lit *= g
+    f += lit
     np.clip(f, 0.0, 255.0, out=f)
     np.rint(f, out=f)
     return f.astype(np.uint8)

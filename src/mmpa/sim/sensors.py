@@ -46,6 +46,7 @@ from mmpa.sim.noise import (
     depth_noise,
     odometry_increment_noise,
     range_noise,
+    resample_to,
 )
 
 __all__ = [
@@ -135,6 +136,31 @@ class SimCamera:
         self._far = float(model.vis.map.zfar) * extent
         self._renderer: mujoco.Renderer | None = None
         self._renderer = self._make_renderer(desc.color)
+        # the session's fixed errors at the native resolution, and at the streamed one
+        self._session: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
+        self._session_at: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
+
+    def set_session(self, disparity: np.ndarray | None, color_gain: np.ndarray | None) -> None:
+        """The errors fixed for this session (see :class:`~mmpa.sim.error_model.CameraNoise`):
+        ``disparity`` (H, W) px, the disparity error of every native pixel (correlated noise,
+        drift, bias pattern; :func:`~mmpa.sim.noise.session_disparity`), and ``color_gain``
+        (H, W, 3), the multiplicative colour gain; both at the native resolution, ``None``
+        for none. Streamed at another resolution, each pixel takes its nearest native pixel."""
+        k = self._native
+        for a, name in ((disparity, "disparity"), (color_gain, "color_gain")):
+            if a is not None and tuple(a.shape[:2]) != (k.height, k.width):
+                raise SimulationError(
+                    f"session {name} must be {k.height}x{k.width} (native), got {a.shape}"
+                )
+        self._session = (disparity, color_gain)
+        self._resample_session()
+
+    def _resample_session(self) -> None:
+        k = self._desc.color
+        shape = (k.height, k.width)
+        self._session_at = tuple(  # type: ignore[assignment]
+            None if a is None else resample_to(a, shape) for a in self._session
+        )
 
     def _make_renderer(self, k: CameraIntrinsics) -> mujoco.Renderer:
         self._check_model(self._model, k)
@@ -166,6 +192,7 @@ class SimCamera:
         self._renderer.close()
         self._renderer = renderer
         self._desc = self._desc.model_copy(update={"color": k, "depth": k})
+        self._resample_session()
 
     def _check_model(self, model: mujoco.MjModel, k: CameraIntrinsics) -> None:
         g = model.vis.global_
@@ -233,14 +260,23 @@ class SimCamera:
         return color, depth
 
     def capture(self) -> RGBDFrame:
-        """One noisy RGB-D frame (the reference error model), stamped with the sim clock."""
+        """One noisy RGB-D frame (the error model, with this session's fixed errors),
+        stamped with the sim clock."""
         stamp = float(self._clock())
         color, depth = self._render()
         d, n = self._desc, self._noise
+        disparity, gain = self._session_at
         depth = depth_noise(
-            depth, self._rng, n, d.depth_focal_native, d.baseline, d.min_range, d.max_range
+            depth,
+            self._rng,
+            n,
+            d.depth_focal_native,
+            d.baseline,
+            d.min_range,
+            d.max_range,
+            fixed_disparity=disparity,
         )
-        color = color_noise(color, self._rng, n)
+        color = color_noise(color, self._rng, n, gain=gain)
         return RGBDFrame(color=color, depth=depth, intrinsics=d.color, stamp=stamp)
 
     def capture_truth(self) -> RGBDFrame:

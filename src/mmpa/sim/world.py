@@ -110,6 +110,11 @@ class SimWorld:
         self._camera: SimCamera | None = None
         self._lidar: SimLidar | None = None
         self._photosensor: SimPhotoSensor | None = None
+        self._depth_bias: np.ndarray | None = None
+        self._camera_session: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
+        self.session = 0
+        self.scene_changes: dict[str, tuple[float, float, float]] = {}
+        self.begin_session(0)
         self.reset(site)
 
     # --- devices --------------------------------------------------------------------------
@@ -125,6 +130,7 @@ class SimWorld:
                 self.error_model.rng("camera", self.episode),
                 lambda: float(self.data.time),
             )
+            self._camera.set_session(*self._camera_session)
         return self._camera
 
     @property
@@ -241,6 +247,54 @@ class SimWorld:
     @property
     def speed_bump_enabled(self) -> bool:
         return self._bump_body is not None and self.model.body_pos[self._bump_body][2] > -0.5
+
+    def begin_session(self, session: int) -> dict[str, tuple[float, float, float]]:
+        """Start session ``session`` (0: the teaching session, k > 0: the k-th repeat, a new
+        park): draw the errors that are fixed within a session and change between sessions
+        (DESIGN.md "Error model v2"), each from :meth:`ErrorModel.session_rng`, so a session
+        is the same whatever ran before it:
+
+        - the depth camera's correlated noise and disparity drift
+          (:func:`~mmpa.sim.noise.session_disparity`) on top of its fixed ring bias pattern
+          (:func:`~mmpa.sim.noise.depth_bias_pattern`, drawn once per robot instance), and
+          the colour session (:func:`~mmpa.sim.noise.color_session_gain`);
+        - the scene change: loose objects back at their taught poses, then, in a repeat
+          session, maybe some nudged (:func:`~mmpa.sim.scene_change.apply_scene_change`).
+
+        Returns what the scene change moved (name -> ``(dx, dy, dyaw)`` in map, m and rad;
+        evaluation only). The robot's pose and the episode streams are unchanged."""
+        from mmpa.sim.noise import color_session_gain, depth_bias_pattern, session_disparity
+
+        k = int(session)
+        if k < 0:
+            raise InvalidInputError(f"session must be >= 0, got {session}")
+        self.session = k
+        cam = self.error_model.config.camera
+        native = self.true_robot.camera.color
+        shape = (native.height, native.width)
+        if self._depth_bias is None:
+            self._depth_bias = (
+                depth_bias_pattern(
+                    shape, self.error_model.rng("depth_bias_pattern"), cam.bias_pattern_px
+                )
+                if cam.bias_pattern_px > 0
+                else np.zeros(shape, dtype=np.float32)
+            )
+        rng = self.error_model.session_rng("camera", k)
+        disparity = session_disparity(shape, rng, cam) + self._depth_bias
+        gain = color_session_gain(shape, rng, cam)
+        self._camera_session = (
+            disparity if np.any(disparity) else None,
+            gain if np.any(gain != 1.0) else None,
+        )
+        if self._camera is not None:
+            self._camera.set_session(*self._camera_session)
+        try:  # TODO(lead): drop the guard once scene_change lands
+            from mmpa.sim.scene_change import apply_scene_change
+        except ImportError:
+            return {}
+        self.scene_changes = apply_scene_change(self, k)
+        return self.scene_changes
 
     def set_episode(self, episode: int) -> None:
         """Re-seed the per-episode noise streams (camera, lidar, joint repeatability, and the
