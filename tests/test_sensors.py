@@ -236,7 +236,7 @@ def test_depth_edges_against_a_pixel_loop() -> None:
 
 
 def test_depth_noise_sigma_scale_and_holes() -> None:
-    cfg = CameraNoise()
+    cfg = CameraNoise(correlated_fraction=0.0)  # all of the per-pixel noise per frame
     f, b = 385.0, 0.05
     z = np.full((480, 640), 1.5)
     out = depth_noise(z, np.random.default_rng(1), cfg, f, b, 0.2, 4.0)
@@ -253,6 +253,27 @@ def test_depth_noise_sigma_scale_and_holes() -> None:
         for s in range(400)
     ]
     assert np.std(means) == pytest.approx(1.5 * cfg.depth_scale_sigma, rel=0.15)
+
+
+def test_depth_noise_splits_the_variance_into_frame_and_session_parts() -> None:
+    """With ``correlated_fraction`` c, a frame carries sqrt(1 - c) of the disparity noise and
+    the fixed field the rest: the total per-pixel SD is the reference formula again, and the
+    frame-to-frame difference has SD sqrt(2 (1 - c)) sigma."""
+    cfg = CameraNoise(correlated_fraction=0.75, invalid_fraction=0.0, depth_scale_sigma=0.0)
+    f, b, zz = 385.0, 0.05, 1.5
+    z = np.full((480, 640), zz)
+    fixed = np.random.default_rng(5).standard_normal(z.shape).astype(np.float32)
+    fixed *= np.float32(np.sqrt(0.75) * cfg.subpixel)
+    a = depth_noise(z, np.random.default_rng(1), cfg, f, b, 0.2, 4.0, fixed_disparity=fixed)
+    c = depth_noise(z, np.random.default_rng(2), cfg, f, b, 0.2, 4.0, fixed_disparity=fixed)
+    sigma = zz**2 * cfg.subpixel / (f * b)
+    assert np.std(a) == pytest.approx(sigma, rel=0.03)
+    assert np.std(a - c) == pytest.approx(np.sqrt(2 * 0.25) * sigma, rel=0.03)
+    # the fixed part: a larger disparity is a nearer point, dz = -z^2 dd / (f b)
+    expect = zz - zz**2 * fixed / (f * b)
+    assert np.corrcoef((a + c).ravel() / 2, expect.ravel())[0, 1] > 0.9
+    with pytest.raises(InvalidInputError):
+        depth_noise(z, np.random.default_rng(1), cfg, f, b, 0.2, 4.0, fixed_disparity=fixed[1:])
 
 
 def test_depth_noise_range_limits_and_invalid_input() -> None:
@@ -347,7 +368,9 @@ def _surface_distance(p: np.ndarray) -> np.ndarray:
 def camera(scene):
     m, d = scene
     _set_mocap(m, d, "cam", [4.0, 0.0, 1.0])
-    cam = SimCamera(m, d, CameraDescription(), CameraNoise(), np.random.default_rng(7), _clock)
+    # the per-pixel model with no session field: all of its variance drawn per frame
+    noise = CameraNoise(correlated_fraction=0.0)
+    cam = SimCamera(m, d, CameraDescription(), noise, np.random.default_rng(7), _clock)
     yield cam
     cam.close()
 
