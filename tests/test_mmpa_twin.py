@@ -15,13 +15,35 @@ from typer.testing import CliRunner
 from mmpa.cli.main import app
 from mmpa.experiments.mmpa_common import MMPAExperimentConfig, TwinSite, ipe_rows
 from mmpa.robot.interfaces import PointCloud
+from mmpa.sim.error_model import ErrorModelConfig
 
 
 @pytest.fixture(scope="module")
 def site1():
-    ts = TwinSite(MMPAExperimentConfig(), "1")
+    """Site 1 in the reference twin: the mission's mechanics (IPE loop, refusals, re-park,
+    execution) against the algorithms' accuracy without session-to-session errors."""
+    ts = TwinSite(MMPAExperimentConfig(errors=ErrorModelConfig(profile="reference")), "1")
     yield ts
     ts.close()
+
+
+def test_ipe_and_tool_under_realistic_errors():
+    """The realistic twin (a new camera session and maybe nudged objects at every park, an
+    uncalibrated arm, hand-eye off by 1 mm / 0.5 deg): IPE still converges and MMPA still beats
+    plain replay by an order of magnitude. Measured at Site 1, seed 0: IPE 2.7 mm mean over 3
+    parks; the bounds leave room for the draw, not for a regression to replay."""
+    with TwinSite(MMPAExperimentConfig(), "1") as ts:
+        assert ts.cfg.errors.profile == "realistic"
+        ts.park(session=1)
+        res = ts.run_ipe(execute=False)
+        truth = ts.parking_truth()
+        row, _ = ipe_rows(res.ipe, truth)
+        assert res.ok and row["ipe_ok"], res.reason
+        assert row["E_t"] < 8e-3 and row["E_R"] < 0.02
+        tool = ts.execute(res)
+        assert tool < 8e-3
+        ts.world.reset(site="1", pose2d=ts.parked_pose2d)
+        assert ts.run_tmma() > 10 * tool
 
 
 def test_teaching_records_what_the_robot_sees(site1):
@@ -159,9 +181,9 @@ def test_ipe_and_path_targets_at_every_site(tmp_path):
     needle tip mean <= 0.5 mm and max <= 1.5 mm, TMMA tens of mm."""
     from mmpa.experiments.runner import run_experiment
 
-    out = run_experiment("path-accuracy", tmp_path, trials=5)
+    out = run_experiment("path-accuracy", tmp_path, trials=5, overrides=["paper_method=false"])
     for site in ("1", "2", "2'"):
-        r = [x for x in out.rows if x["site"] == site]
+        r = [x for x in out.rows if x["site"] == site and x["method"] == "mmpa"]
         assert all(x["ipe_ok"] for x in r), [x["reason"] for x in r]
         assert np.mean([x["E_t"] for x in r]) <= 2e-3
         assert np.mean([x["E_R"] for x in r]) <= 0.005

@@ -219,6 +219,7 @@ def _teach_first(world: SimWorld, cfg: DemoConfig, progress: Progress | None):
     if progress is not None:
         progress(f"teaching {demo.name} at site {cfg.goal_site}", 0.0)
     taught = teach_in_world(world, demo, cfg.goal_site, MMPAExperimentConfig(errors=cfg.errors))
+    world.begin_session(1)  # the repeat: another day for the camera and the bench
     world.reset(site=cfg.start_site)
     return taught
 

@@ -130,6 +130,7 @@ def teach_in_world(
         raise ConfigError(
             f"demonstration {demo.name!r} belongs to site {demo.site!r}, not {teach_site!r}"
         )
+    w.begin_session(0)  # the teaching session (DESIGN.md "Error model v2")
     w.reset(site=teach_site)
     rng = w.error_model.rng("teach_park_estimate")
     sx, sth = cfg.localization_sigma
@@ -240,11 +241,17 @@ class TwinSite:
         self.nav_reached = bool(res.reached)
         return T_to_vec6(self.parking_truth())
 
-    def park(self) -> Array:
+    def park(self, session: int | None = None) -> Array:
         """Park with a Table 2 offset (planar part; z, roll, pitch come from the terrain);
         returns the sampled 6D offset. Offsets with |yaw| above ``max_yaw_offset_deg`` are
         redrawn (a navigation stack would not report such a pose as parked). With
-        ``parking="physics"`` the base drives there instead (:meth:`park_by_driving`)."""
+        ``parking="physics"`` the base drives there instead (:meth:`park_by_driving`).
+
+        Every park is a new repeat session of the twin (``SimWorld.begin_session``): the
+        camera's session errors and the scene's loose objects change; ``session`` (>= 1)
+        numbers it, by default the count of parks so far."""
+        self._parks = getattr(self, "_parks", 0) + 1
+        self.world.begin_session(self._parks if session is None else int(session))
         if self.cfg.parking == "physics":
             return self.park_by_driving()
         w = self.world
@@ -498,7 +505,7 @@ def ipe_trials(
                 a = a.model_copy(update={"max_reparks": 0})
             for i in range(n):
                 progress(f"site {site}: trial {i + 1}/{n}", done / total)
-                ts.park()
+                ts.park(session=i + 1)
                 before = ts.parking_truth()
                 row: dict = {**(label or {}), "site": site, "trial": i}
                 if tmma:

@@ -13,6 +13,7 @@ import numpy as np
 
 from mmpa.experiments import paper000
 from mmpa.experiments.mmpa_common import MMPAExperimentConfig, ipe_trials
+from mmpa.experiments.mmpa_ipe import _halves, paper_method_trials
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats, write_csv
 
 PAPER = "paper 000 Table 4 (needle-tip distance bias, TMMA vs MMPA) and Fig. 10"
@@ -20,38 +21,77 @@ PAPER = "paper 000 Table 4 (needle-tip distance bias, TMMA vs MMPA) and Fig. 10"
 
 class Config(MMPAExperimentConfig):
     tmma: bool = True
+    # also run the paper's own automation settings (AutomationConfig.paper) on the same parks
+    paper_method: bool = True
+
+
+def _path_summary(r: list[dict]) -> dict:
+    m = stats(x["mmpa_mm"] for x in r)
+    return {
+        "mmpa_mean_mm": m["mean"],
+        "mmpa_sd_mm": m["sd"],
+        "mmpa_max_mm": m["max"],
+        "success": float(np.mean([x["plan_ok"] for x in r])) if r else float("nan"),
+        "reparks": int(sum(x.get("reparks", 0) for x in r)),
+    }
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
-    rows, iters = ipe_trials(cfg, ctx.progress, execute=True, tmma=cfg.tmma)
+    prog = _halves(ctx.progress, False) if cfg.paper_method else ctx.progress
+    rows, iters = ipe_trials(cfg, prog, execute=True, tmma=cfg.tmma, label={"method": "mmpa"})
+    prows: list[dict] = []
+    if cfg.paper_method:
+        prows, piters = paper_method_trials(cfg, _halves(ctx.progress, True), execute=True)
+        iters += piters
     write_csv(ctx.out / "iterations.csv", iters)
     table, summary = [], {}
+    nan = float("nan")
     for s in cfg.sites:
         r = [x for x in rows if x["site"] == s]
+        q = [x for x in prows if x["site"] == s]
         m = stats(x["mmpa_mm"] for x in r)
+        pmeth = stats(x["mmpa_mm"] for x in q)
         t = stats(x.get("tmma_mm") for x in r) if cfg.tmma else stats([])
-        ok = float(np.mean([x["plan_ok"] for x in r])) if r else float("nan")
         p = paper000.TABLE4.get(s, {})
-        pt = p.get("TMMA") or (float("nan"),) * 3
-        pm = p.get("MMPA") or (float("nan"),) * 3
+        pt = p.get("TMMA") or (nan,) * 3
+        pm = p.get("MMPA") or (nan,) * 3
         for i, name in enumerate(("mean", "SD", "max")):
             key = {"mean": "mean", "SD": "sd", "max": "max"}[name]
-            table.append([f"{name} distance bias (mm)", s, t[key], pt[i], m[key], pm[i]])
-        table.append(["MMPA success (IPE + plan)", s, float("nan"), float("nan"), ok, 1.0])
-        summary[s] = {
-            "mmpa_mean_mm": m["mean"],
-            "mmpa_max_mm": m["max"],
-            "tmma_mean_mm": t["mean"],
-            "success": ok,
-            "reparks": int(sum(x.get("reparks", 0) for x in r)),
-        }
+            table.append(
+                [f"{name} distance bias (mm)", s, t[key], pt[i], pm[i], pmeth[key], m[key]]
+            )
+        summary[s] = {**_path_summary(r), "tmma_mean_mm": t["mean"]}
+        pq = _path_summary(q) if q else None
+        table.append(
+            [
+                "MMPA success (IPE + plan)",
+                s,
+                nan,
+                nan,
+                1.0,
+                pq["success"] if pq else nan,
+                summary[s]["success"],
+            ]
+        )
+        if pq is not None:
+            summary[s]["paper_method"] = pq
     fig = plot_fig10(rows, cfg.sites, ctx.out / "fig10_needle_tips.png")
     report = (
         "Distance of the TRUE needle tip from the taught TRUE tip at the key pose "
         f"({cfg.n_trials()} trials per site, seed {cfg.seed}); MMPA statistics over the "
-        "successful trials. The paper did not run TMMA at Site 2'.\n\n"
+        "successful trials. The paper did not run TMMA at Site 2'. The paper method is the "
+        "paper's own automation settings (AutomationConfig.paper) on the same parks in the "
+        "same twin.\n\n"
         + markdown_table(
-            ["figure", "site", "TMMA (twin)", "TMMA (paper)", "MMPA (twin)", "MMPA (paper)"],
+            [
+                "figure",
+                "site",
+                "TMMA (twin)",
+                "TMMA (paper)",
+                "MMPA (paper, lab)",
+                "paper method (twin)",
+                "mmpa (twin)",
+            ],
             table,
             digits=2,
         )
@@ -69,7 +109,7 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         )
         + f"\n![Fig. 10]({fig})\n"
     )
-    return Outcome(rows, summary, report, [fig])
+    return Outcome(rows + prows, summary, report, [fig])
 
 
 def plot_fig10(rows: list[dict], sites: list[str], path) -> str:

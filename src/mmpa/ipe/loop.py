@@ -115,6 +115,24 @@ class IPEConfig(BaseModel):
         alpha_vector(v)
         return v
 
+    @classmethod
+    def paper(cls, **changes: object) -> IPEConfig:
+        """The paper's own IPE settings (paper 000 §3.2, §4.3): one frame per view, global
+        registration (FGR + colored ICP) every iteration, colored ICP whenever both clouds
+        carry colour, no retreat, no projective or final refinement; ``changes`` on top
+        (e.g. ``beta=10`` at Site 2')."""
+        base = cls()
+        reg = base.registration.model_copy(update={"color_mode": "paper"})
+        fields = {
+            "frames": 1,
+            "global_each_iteration": True,
+            "retreat": 0.0,
+            "projective": None,
+            "final": None,
+            "registration": reg,
+        }
+        return cls.model_validate({**base.model_dump(), **fields, **changes})
+
 
 @dataclass(frozen=True)
 class IPEIteration:

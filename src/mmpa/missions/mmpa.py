@@ -117,6 +117,13 @@ class AutomationConfig(BaseModel):
     # (paper: no re-park; 0 turns it off). Only with a ``repark`` callback.
     max_reparks: int = Field(1, ge=0)
 
+    @classmethod
+    def paper(cls, beta: int | None = None) -> AutomationConfig:
+        """The paper's automation stage: :meth:`IPEConfig.paper` (with ``beta`` when given),
+        no localization prior for the first view, no re-park."""
+        ipe = IPEConfig.paper(**({} if beta is None else {"beta": beta}))
+        return cls(ipe=ipe, localization_prior=False, max_reparks=0)
+
 
 @dataclass
 class AutomationResult:
