@@ -41,7 +41,10 @@ def test_reflector_dropout_small(tmp_path) -> None:
     assert tri["err_peak_during_mm"] > 300 and enh["err_mean_during_mm"] < 100
     # no spike: 2 reflectors left (one sometimes cut by a person), the error stays mm-level
     assert enh["err_p95_during_mm"] < 15 and enh["err_peak_during_mm"] < 30, enh
-    assert enh["err_before_mm"] < 10
+    # realistic profile (the default): with all reflectors in view the fix carries their range
+    # walk, the 10 mm survey error and the mount error: 16.6 mm measured before the dropout
+    # (2.9 mm under reference), 10.0 / 15.5 mm p95 / peak during it (3.4 / 3.5 mm)
+    assert enh["err_before_mm"] < 25
     assert s["visible"]["9"]["enhanced_err_mm"] < 6
 
 

@@ -22,7 +22,7 @@ from mmpa.robot.description import (
     PhotoSensorDescription,
 )
 from mmpa.robot.interfaces import Camera, Lidar, PhotoSensor, deproject
-from mmpa.sim.error_model import CameraNoise, LidarNoise, OdometryNoise
+from mmpa.sim.error_model import CameraNoise, ErrorModelConfig, LidarNoise, OdometryNoise
 from mmpa.sim.noise import (
     axial_depth_sigma,
     bernoulli_indices,
@@ -511,9 +511,16 @@ def test_camera_model_checks() -> None:
 # lidar
 
 
+# The single-ray lidar of the reference profile: these tests check its geometry (bearings,
+# ranges, fields) exactly; under the realistic default a reflector's edge beams return partial
+# intensity and a depth edge mixed ranges (beam width), which tests/test_error_model_lidar.py
+# checks against their configured sizes.
+REFERENCE_LIDAR = ErrorModelConfig(profile="reference").lidar
+
+
 def _lidar(m, d, seed=0, **desc) -> SimLidar:
     return SimLidar(
-        m, d, LidarDescription(**desc), LidarNoise(), np.random.default_rng(seed), _clock
+        m, d, LidarDescription(**desc), REFERENCE_LIDAR, np.random.default_rng(seed), _clock
     )
 
 

@@ -9,12 +9,22 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from mmpa.cli.common import console, fail
+from mmpa.cli.common import ProfileOpt, console, fail
 from mmpa.errors import MMPAError
 
 __all__ = ["register"]
 
 map_app = typer.Typer(help="Occupancy maps (ROS map_server format).", no_args_is_help=True)
+
+
+def _errors(seed: int, profile: str | None):
+    """The twin's error model: ``--profile`` (default realistic) for robot instance ``seed``
+    (a ``ConfigError`` for an unknown profile)."""
+    from mmpa.config import load_config
+    from mmpa.sim.error_model import ErrorModelConfig
+
+    sets = [f"seed={seed}"] + ([] if profile is None else [f"profile={profile}"])
+    return load_config(ErrorModelConfig, None, sets)
 
 
 def navigate_cmd(
@@ -26,9 +36,11 @@ def navigate_cmd(
     seed: Annotated[int, typer.Option(help="Robot instance / noise seed.")] = 0,
     out: Annotated[Path | None, typer.Option(help="Write summary.json here.")] = None,
     timeout: Annotated[float, typer.Option(help="Simulated seconds.")] = 120.0,
+    profile: ProfileOpt = None,
 ) -> None:
-    """Drive the twin from a site to ``--to`` on the localization estimate; print the parking
-    error (truth vs goal) and the localization error (estimate vs truth) at the end."""
+    """Drive the twin from a site to ``--to`` on the localization estimate (started from the
+    operator's rough pose); print the parking error (truth vs goal) and the localization error
+    (estimate vs truth) at the end."""
     import numpy as np
 
     from mmpa.localization.localizer import make_localizer
@@ -40,15 +52,16 @@ def navigate_cmd(
         twin_nav_map,
     )
     from mmpa.navigation.planner import CostMap
-    from mmpa.sim.error_model import ErrorModelConfig
+    from mmpa.sim.operator import rough_initial_pose
     from mmpa.sim.world import SimWorld
 
     try:
-        with SimWorld(errors=ErrorModelConfig(seed=seed), site=start) as world:
+        errors = _errors(seed, profile)
+        with SimWorld(errors=errors, site=start) as world:
             goal = world.scene.site(to).pose2d
             grid = twin_map(world)
             loc = make_localizer(method, grid, laser_pose2d(world), np.random.default_rng(seed))
-            loc.initialize(world.scene.site(start).pose2d)
+            loc.initialize(rough_initial_pose(world))  # the operator's rough pose
             with console.status(f"navigating site {start} -> site {to} ({method})"):
                 cm = CostMap(twin_nav_map(world))
                 res = navigate(world, loc, grid, goal, NavigateConfig(timeout=timeout), costmap=cm)
@@ -59,6 +72,7 @@ def navigate_cmd(
         "from": start,
         "to": to,
         "method": method,
+        "profile": errors.profile,
         "reached": res.reached,
         "sim_seconds": round(res.sim_time, 2),
         "parking_error_xy_mm": round(1000 * res.parking_error_xy, 2),
@@ -84,16 +98,19 @@ def map_export(
         "runs/map/map.yaml"
     ),
     resolution: Annotated[float, typer.Option(help="m per cell.")] = 0.05,
-    seed: Annotated[int, typer.Option(help="Robot instance seed (reflector survey error).")] = 0,
+    seed: Annotated[
+        int, typer.Option(help="Robot instance seed (map warp, reflector survey error).")
+    ] = 0,
+    profile: ProfileOpt = None,
 ) -> None:
-    """Write the twin's occupancy map with the surveyed reflector landmarks (map_server YAML)."""
+    """Write the twin's occupancy map (warped as mapped, per the error model) with the surveyed
+    reflector landmarks (map_server YAML)."""
     from mmpa.localization.maps import save_map
     from mmpa.navigation.mission import twin_map
-    from mmpa.sim.error_model import ErrorModelConfig
     from mmpa.sim.world import SimWorld
 
     try:
-        with SimWorld(errors=ErrorModelConfig(seed=seed)) as world:
+        with SimWorld(errors=_errors(seed, profile)) as world:
             grid = twin_map(world, resolution)
         path = save_map(grid, out)
     except MMPAError as e:

@@ -38,6 +38,7 @@ from mmpa.navigation.mission import (
 )
 from mmpa.navigation.planner import CostMap
 from mmpa.sim.error_model import ErrorModelConfig
+from mmpa.sim.operator import rough_initial_pose
 from mmpa.sim.scene import load_scene
 from mmpa.sim.world import SimWorld
 
@@ -150,7 +151,7 @@ def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None)
             loc = make_localizer(
                 cfg.localization, grid, laser_pose2d(world), np.random.default_rng(cfg.errors.seed)
             )
-            loc.initialize(world.scene.site(cfg.start_site).pose2d)  # the operator's rough pose
+            loc.initialize(rough_initial_pose(world))  # the operator's rough pose (truth + error)
             nav_cfg = cfg.navigate.model_copy(update={"timeout": cfg.timeout})
             res = navigate(
                 world,

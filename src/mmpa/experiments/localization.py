@@ -1,7 +1,8 @@
 """Paper 001 Table 2 / Fig. 9: localization accuracy at the target after driving there.
 
 Each trial: the robot starts at a random pose in the corridor, is told a rough initial pose
-(truth + N(0, ``init_sigma_xy``) per axis, N(0, ``init_sigma_theta``)), and navigates to the
+(truth + N(0, ``init_sigma_xy``) per axis, N(0, ``init_sigma_theta``); by default the
+operator's error of the twin's error model, ``errors.operator``), and navigates to the
 target site in the lobby (A* + pure pursuit + final approach) steering on the method's OWN
 estimate. At the end we compare the estimate with the truth (the paper's position error,
 success = error < 12 mm) and also report the parking error (truth vs goal).
@@ -9,6 +10,9 @@ success = error < 12 mm) and also report the parking error (truth vs goal).
 Second part (``kidnap_trials``): kidnapped-robot recovery. The robot, well localized at the
 target, is carried to another site without the localizer knowing; it then turns slowly on the
 spot and we measure the time until the estimate is within 5 cm of the truth again.
+
+The twin's error model is ``errors`` (profile ``realistic`` by default); its seed, the robot
+instance, follows ``seed`` unless ``errors.seed`` is given.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ import time
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.geometry import wrap_angle
@@ -32,6 +36,7 @@ from mmpa.navigation.mission import (
 )
 from mmpa.navigation.planner import CostMap
 from mmpa.sim.error_model import ErrorModelConfig
+from mmpa.sim.lidar_noise import rough_pose
 from mmpa.sim.world import SimWorld
 
 PAPER = "paper 001 (Zhou et al. 2020) §4.3.1, Table 2 and Fig. 9"
@@ -63,8 +68,9 @@ class Config(BaseModel):
     corridor_x: tuple[float, float] = (-10.5, -4.0)
     corridor_y: tuple[float, float] = (0.75, 1.65)
     start_clearance: float = Field(0.55, gt=0)  # m from obstacles (circumscribed radius 0.48)
-    init_sigma_xy: float = Field(0.10, ge=0)
-    init_sigma_theta: float = Field(0.05, ge=0)
+    # the rough initial pose's error (m, rad); None: the error model's operator section
+    init_sigma_xy: float | None = Field(None, ge=0)
+    init_sigma_theta: float | None = Field(None, ge=0)
     success_threshold: float = Field(0.012, gt=0)  # m (paper: 12 mm)
     resolution: float = Field(0.05, gt=0)
     navigate: NavigateConfig = NavigateConfig(scan_rate=5.0, timeout=150.0)
@@ -72,6 +78,38 @@ class Config(BaseModel):
     kidnap_site: str = "2"
     kidnap_duration: float = Field(30.0, gt=0)
     kidnap_amcl: AMCLConfig = AMCLConfig(recovery_alpha_slow=0.001, recovery_alpha_fast=0.1)
+    errors: ErrorModelConfig = ErrorModelConfig()  # the twin (its seed: ``seed`` if not given)
+
+    @model_validator(mode="after")
+    def _robot_seed(self) -> Config:
+        return errors_follow_seed(self)
+
+
+def errors_follow_seed(cfg: Any) -> Any:
+    """Let ``cfg.errors.seed`` (the twin's robot instance) be ``cfg.seed`` unless it was given
+    explicitly: ``--seed`` keeps picking the robot, as these experiments always did."""
+    if "seed" in cfg.errors.model_fields_set:
+        return cfg
+    given = "errors" in cfg.model_fields_set
+    errors = cfg.errors.model_copy(update={"seed": cfg.seed})
+    errors.__pydantic_fields_set__.discard("seed")  # derived, not given: a new --seed moves it
+    cfg.errors = errors
+    if not given:
+        cfg.__pydantic_fields_set__.discard("errors")
+    return cfg
+
+
+def initial_sigmas(cfg: Any) -> tuple[float, float]:
+    """``(sigma_xy m, sigma_theta rad)`` of the rough initial pose: ``cfg.init_sigma_xy`` /
+    ``cfg.init_sigma_theta`` where given, else the error model's operator error."""
+    op = cfg.errors.operator
+    xy = op.initial_pos_sigma if cfg.init_sigma_xy is None else cfg.init_sigma_xy
+    th = (
+        np.deg2rad(op.initial_yaw_sigma_deg)
+        if cfg.init_sigma_theta is None
+        else cfg.init_sigma_theta
+    )
+    return float(xy), float(th)
 
 
 def corridor_start(nav: CostMap, rng: np.random.Generator, cfg: Any) -> np.ndarray:
@@ -94,12 +132,10 @@ def corridor_start(nav: CostMap, rng: np.random.Generator, cfg: Any) -> np.ndarr
 
 def _trial(cfg: Config, k: int, method: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     rng = np.random.default_rng([cfg.seed, k])
-    with SimWorld(errors=ErrorModelConfig(seed=cfg.seed), site="0", episode=k) as world:
+    with SimWorld(errors=cfg.errors, site="0", episode=k) as world:
         nav = CostMap(twin_nav_map(world, cfg.resolution))
         start = corridor_start(nav, rng, cfg)
-        guess = start + np.array(
-            [*rng.normal(0, cfg.init_sigma_xy, 2), rng.normal(0, cfg.init_sigma_theta)]
-        )
+        guess = rough_pose(start, rng, *initial_sigmas(cfg))  # the operator's rough pose
         world.reset(pose2d=start)
         grid = twin_map(world, cfg.resolution)
         loc = make_localizer(
@@ -140,15 +176,17 @@ def _trial(cfg: Config, k: int, method: str) -> tuple[dict[str, Any], dict[str, 
 
 
 def _kidnap(cfg: Config, k: int, method: str) -> dict[str, Any]:
-    """Localize at the goal site, carry the robot to ``kidnap_site``, turn slowly; time to
-    recover (estimate within 5 cm / 0.05 rad of the truth for 1 s)."""
-    with SimWorld(errors=ErrorModelConfig(seed=cfg.seed), site=cfg.goal_site, episode=100 + k) as w:
+    """Localize at the goal site (from the operator's rough pose, 5 standing scans), carry the
+    robot to ``kidnap_site``, turn slowly; time to recover (estimate within 5 cm / 0.05 rad
+    of the truth for 1 s)."""
+    with SimWorld(errors=cfg.errors, site=cfg.goal_site, episode=100 + k) as w:
         grid = twin_map(w, cfg.resolution)
         amcl = cfg.kidnap_amcl
         loc = make_localizer(
             method, grid, laser_pose2d(w), np.random.default_rng([cfg.seed, k, 9]), amcl=amcl
         )
-        loc.initialize(w.truth.base_pose2d())
+        guess_rng = np.random.default_rng([cfg.seed, k, 10])
+        loc.initialize(rough_pose(w.truth.base_pose2d(), guess_rng, *initial_sigmas(cfg)))
         dt = 1.0 / cfg.navigate.scan_rate
         for _ in range(5):
             w.step(dt)
@@ -232,9 +270,10 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             ]
         )
     figs = _plots(ctx, traces)
+    sxy, sth = initial_sigmas(cfg)
     report = (
         f"{n} runs per method, random corridor start, rough initial pose "
-        f"(sigma {cfg.init_sigma_xy * 100:.0f} cm / {cfg.init_sigma_theta:.2f} rad), target: site "
+        f"(sigma {sxy * 100:.0f} cm / {sth:.2f} rad), target: site "
         f"{cfg.goal_site}. Position error = final estimate vs truth (paper's measure); success = "
         f"position error < {cfg.success_threshold * 1000:.0f} mm. Parking = truth vs goal.\n\n"
         + markdown_table(

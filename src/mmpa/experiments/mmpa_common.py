@@ -35,6 +35,8 @@ from mmpa.geometry import (
     translation_error,
 )
 from mmpa.ipe.loop import IPEResult
+from mmpa.localization.localizer import make_localizer
+from mmpa.localization.maps import OccupancyGrid
 from mmpa.missions.mmpa import (
     AutomationConfig,
     TeachConfig,
@@ -43,11 +45,13 @@ from mmpa.missions.mmpa import (
     replay_tmma,
     teach,
 )
+from mmpa.navigation.mission import laser_pose2d, localize_standing, twin_map
 from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.operator import (
     Demonstration,
     demonstrate,
     load_demonstrations,
+    rough_initial_pose,
     sampling_joints,
     true_tcp_in_map,
 )
@@ -82,11 +86,13 @@ class MMPAExperimentConfig(BaseModel):
     # sampled: paper Table 2 offsets; physics: drive from near Site 0 with mmpa's navigation
     # on the localization estimate (``localizer``) and park where it stops
     parking: Literal["sampled", "physics"] = "sampled"
-    localizer: str = "enhanced"  # a method of mmpa.localization.localizer (physics parking)
+    # a method of mmpa.localization.localizer: the park estimates, physics parking, re-parks
+    localizer: str = "enhanced"
     start_sigma: tuple[float, float] = (0.05, float(np.deg2rad(5.0)))  # m, rad around Site 0
-    # base localization error (m, rad) of the park pose estimates at teaching and automation
-    # (paper 001's enhanced AMCL reaches ~1 cm)
-    localization_sigma: tuple[float, float] = (0.01, float(np.deg2rad(0.5)))
+    # the park pose estimates at teaching and automation come from the ``localizer`` run on
+    # this many scans while the base stands still (teaching: from the operator's rough pose;
+    # a sampled park: from the navigation goal, the pose the robot was sent to)
+    park_scans: int = Field(5, ge=1)
     max_yaw_offset_deg: float = Field(45.0, gt=0)  # redraw parking offsets beyond this
     repark_staging: float = Field(0.4, ge=0)  # m behind the goal: a re-park's first leg
     beta_per_site: bool = True  # beta 10 at Site 2' as in the paper (else automation.ipe.beta)
@@ -121,6 +127,22 @@ def _truth_meta(taught_T_map_Bo: Array, key_tcp: Array, key_index: int, seed: in
     }
 
 
+def localize_parked(
+    w: SimWorld,
+    grid: OccupancyGrid,
+    method: str,
+    guess: Array,
+    rng: np.random.Generator,
+    cfg: MMPAExperimentConfig,
+) -> Array:
+    """The localization estimate ``[x, y, theta]`` of a parked robot: localizer ``method`` on
+    ``grid``, initialized at ``guess`` (Nav2's initial covariance), run on ``cfg.park_scans``
+    scans while the base stands still (:func:`~mmpa.navigation.mission.localize_standing`)."""
+    loc = make_localizer(method, grid, laser_pose2d(w), rng)
+    loc.initialize(np.asarray(guess, float))
+    return localize_standing(w, loc, cfg.park_scans)
+
+
 def teach_in_world(
     w: SimWorld, demo: Demonstration, teach_site: str, cfg: MMPAExperimentConfig
 ) -> Taught:
@@ -133,8 +155,8 @@ def teach_in_world(
     w.begin_session(0)  # the teaching session (DESIGN.md "Error model v2")
     w.reset(site=teach_site)
     rng = w.error_model.rng("teach_park_estimate")
-    sx, sth = cfg.localization_sigma
-    est = w.truth.base_pose2d() + rng.normal(0, [sx, sx, sth])
+    # the park pose estimate: the localizer, told the operator's rough pose, on a few scans
+    est = localize_parked(w, twin_map(w), cfg.localizer, rough_initial_pose(w, rng), rng, cfg)
     q_sample = sampling_joints(w, demo)
     holder: dict = {}
 
@@ -216,12 +238,7 @@ class TwinSite:
     def park_by_driving(self) -> Array:
         """Start near Site 0 (told the rough pose), navigate to the site on the localization
         estimate, stop; the parking error is whatever the physics and localization leave."""
-        from mmpa.localization.localizer import make_localizer
-        from mmpa.navigation.mission import (
-            NavigateConfig,
-            laser_pose2d,
-            navigate,
-        )
+        from mmpa.navigation.mission import NavigateConfig, navigate
 
         w = self.world
         grid, costmap = self._navigation()
@@ -230,7 +247,7 @@ class TwinSite:
         w.reset(site="0", pose2d=s0 + self.rng.normal(0, [sx, sx, sth]))
         w.set_speed_bump(w.scene.site(self.site).speed_bump)  # Site 2' drives onto the bump
         loc = make_localizer(self.cfg.localizer, grid, laser_pose2d(w), self.rng)
-        loc.initialize(s0)
+        loc.initialize(rough_initial_pose(w, self._loc_rng()))  # the operator's rough pose
         goal = w.scene.site(self.site).pose2d
         res = navigate(w, loc, grid, goal, NavigateConfig(), costmap=costmap)
         w.base.stop()
@@ -267,14 +284,28 @@ class TwinSite:
         pose = se2_compose(Bk, se2_inv(arm))
         w.reset(site=self.site, pose2d=pose)
         self.parked_pose2d = pose
-        sx, sth = self.cfg.localization_sigma
-        self.T_map_base_estimate = se2_to_T(
-            *(w.truth.base_pose2d() + self.rng.normal(0, [sx, sx, sth]))
-        )
+        self.T_map_base_estimate = se2_to_T(*self._localize_at_goal())
         return off
 
+    def _loc_rng(self) -> np.random.Generator:
+        """The generator of the park estimates (localizer particles, the operator's rough
+        pose): a stream of its own, so that the trials' other draws stay as they were."""
+        if not hasattr(self, "_park_loc_rng"):
+            self._park_loc_rng = self.world.error_model.rng(f"mmpa_park_estimate_{self.site}")
+        return self._park_loc_rng
+
+    def _localize_at_goal(self) -> Array:
+        """The localizer's estimate of the parked robot, initialized at the navigation goal
+        (the site's park pose: where the robot was sent), after ``park_scans`` standing
+        scans."""
+        grid, _ = self._navigation()
+        goal = self.world.scene.site(self.site).pose2d
+        return localize_parked(
+            self.world, grid, self.cfg.localizer, goal, self._loc_rng(), self.cfg
+        )
+
     def _navigation(self):
-        from mmpa.navigation.mission import NavigateConfig, twin_map, twin_nav_map
+        from mmpa.navigation.mission import NavigateConfig, twin_nav_map
         from mmpa.navigation.planner import CostMap
 
         if not hasattr(self, "_nav"):
@@ -290,15 +321,14 @@ class TwinSite:
         then straight in (a differential base that turns in place next to the bench or on the
         Site 2' bump stalls), to 1 cm / 0.01 rad (IPE measures what is left). Returns the new
         localization estimate ``T_map_base``."""
-        from mmpa.localization.localizer import make_localizer
-        from mmpa.navigation.mission import NavigateConfig, laser_pose2d, navigate
+        from mmpa.navigation.mission import NavigateConfig, navigate
 
         w = self.world
         grid, costmap = self._navigation()
         est0 = (
             T_to_se2(self.T_map_base_estimate)
             if self.T_map_base_estimate is not None
-            else w.truth.base_pose2d()  # no estimate given: the twin's sampled parking
+            else self._localize_at_goal()  # no estimate given: ask the localizer
         )
         if not hasattr(self, "_repark_rng"):  # its own stream: trials stay as they were
             self._repark_rng = w.error_model.rng(f"mmpa_repark_{self.site}")

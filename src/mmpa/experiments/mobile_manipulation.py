@@ -4,8 +4,10 @@ One run (paper 001 §4.2.2, Fig. 15):
 
 1. **Start**: the robot stands at a random pose in the corridor (footprint clear of obstacles)
    and is told a rough initial pose (truth + N(0, ``init_sigma_xy``) per axis, N(0,
-   ``init_sigma_theta``)); the target object and ``others`` other objects (plus distractors)
-   lie on the grasp desk in the lobby, the target on the reachable part of it.
+   ``init_sigma_theta``); by default the operator's error of the error model ``errors``,
+   whose seed, the robot instance, follows ``seed`` unless given); the target object and
+   ``others`` other objects (plus distractors) lie on the grasp desk in the lobby, the target
+   on the reachable part of it.
 2. **Object name**: the operator sends the target's name (an unknown name fails at once).
 3. **Navigate** to the work area: A* on the map plus pure pursuit, steering on the enhanced
    AMCL estimate (reflector trilateration, :mod:`mmpa.localization`), to the *entry pose*
@@ -43,12 +45,13 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from mmpa.experiments.localization import corridor_start
+from mmpa.experiments.localization import corridor_start, errors_follow_seed, initial_sigmas
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.geometry import Array, se2_to_T, wrap_angle
 from mmpa.navigation.mission import NavigateConfig
+from mmpa.sim.error_model import ErrorModelConfig
 
 PAPER = "paper 001 (Zhou et al. 2020) §4.3.4, Table 4 (mobile manipulation, 20 runs per object)"
 
@@ -71,8 +74,9 @@ class Config(BaseModel):
     corridor_x: tuple[float, float] = (-10.5, -4.0)
     corridor_y: tuple[float, float] = (0.75, 1.65)
     start_clearance: float = Field(0.55, gt=0)  # m from obstacles
-    init_sigma_xy: float = Field(0.10, ge=0)
-    init_sigma_theta: float = Field(0.05, ge=0)
+    # the rough initial pose's error (m, rad); None: the error model's operator section
+    init_sigma_xy: float | None = Field(None, ge=0)
+    init_sigma_theta: float | None = Field(None, ge=0)
     resolution: float = Field(0.05, gt=0)
     # rad (map): heading at the work-area entry pose; None: the direction the planned path
     # arrives in (the go-to-pose controller turns badly on the spot at 3 mm tolerance)
@@ -98,6 +102,12 @@ class Config(BaseModel):
     use_predictor: bool = True
     others: int = 2
     max_time: float = 15.0  # s of simulated time for the grasp
+
+    errors: ErrorModelConfig = ErrorModelConfig()  # the twin (its seed: ``seed`` if not given)
+
+    @model_validator(mode="after")
+    def _robot_seed(self) -> Config:
+        return errors_follow_seed(self)
 
     def n_trials(self) -> int:
         return 20 if self.trials is None else self.trials
@@ -214,22 +224,26 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
     from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, held_in_the_physics, run_grasp
     from mmpa.geometry import inv, se2_to_T
     from mmpa.localization.localizer import make_localizer
-    from mmpa.navigation.mission import laser_pose2d, navigate, twin_map, twin_nav_map
+    from mmpa.navigation.mission import (
+        laser_pose2d,
+        localize_standing,
+        navigate,
+        twin_map,
+        twin_nav_map,
+    )
     from mmpa.navigation.planner import CostMap, plan_path
     from mmpa.perception import CLASSES
     from mmpa.perception.dataset import DESK_PARK, desk_frame
     from mmpa.servo.grasp import look_configuration
-    from mmpa.sim.error_model import ErrorModelConfig
+    from mmpa.sim.lidar_noise import rough_pose
     from mmpa.sim.world import SimWorld
 
     rng = np.random.default_rng([cfg.seed, k, CLASSES.index(name)])
     w0 = time.perf_counter()
-    with SimWorld(errors=ErrorModelConfig(seed=cfg.seed), site="0", episode=k) as world:
+    with SimWorld(errors=cfg.errors, site="0", episode=k) as world:
         nav = CostMap(twin_nav_map(world, cfg.resolution))
         start = corridor_start(nav, rng, cfg)
-        guess = start + np.array(
-            [*rng.normal(0, cfg.init_sigma_xy, 2), rng.normal(0, cfg.init_sigma_theta)]
-        )
+        guess = rough_pose(start, rng, *initial_sigmas(cfg))  # the operator's rough pose
         world.reset(pose2d=start, settle=0.2)
         place_trial_objects(world, rng, name, cfg.others)
         world.set_lighting(cfg.lighting)
@@ -243,8 +257,10 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
         park = np.array(DESK_PARK)
         back = cfg.entry_back * np.array([np.cos(park[2]), np.sin(park[2])])
         entry = np.array([*(park[:2] - back), 0.0])
-        if cfg.entry_heading is None:
-            path = plan_path(costmap, guess[:2], entry[:2])
+        if cfg.entry_heading is None:  # planned from the localizer's first estimate
+            n0 = max(cfg.navigate.initial_scans, 1)
+            est0 = localize_standing(world, loc, n0, cfg.navigate.scan_rate)
+            path = plan_path(costmap, est0[:2], entry[:2])
             d = path[-1] - path[max(len(path) - 2, 0)]
             entry[2] = float(np.arctan2(d[1], d[0]))
         else:

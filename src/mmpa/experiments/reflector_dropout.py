@@ -17,6 +17,10 @@ about 56 mm / 56 mrad per 25 cm) adds little on top of it.
 Second part: accuracy vs the number of visible reflectors, at the goal site, standing still:
 ``k`` reflectors left visible (random subsets), single-scan trilateration error and the
 enhanced AMCL's error after ``settle_scans`` scans.
+
+Every localizer starts from the operator's rough pose (truth + the error model's operator
+error, ``errors.operator``). The twin's error model is ``errors`` (profile ``realistic`` by
+default); its seed, the robot instance, follows ``seed`` unless ``errors.seed`` is given.
 """
 
 from __future__ import annotations
@@ -24,8 +28,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from mmpa.experiments.localization import errors_follow_seed
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.geometry import wrap_angle
 from mmpa.localization.localizer import METHODS, _observer, make_localizer
@@ -34,6 +39,7 @@ from mmpa.navigation.follower import FollowerConfig, PathFollower
 from mmpa.navigation.mission import laser_pose2d, twin_map, twin_nav_map
 from mmpa.navigation.planner import CostMap, plan_path
 from mmpa.sim.error_model import ErrorModelConfig
+from mmpa.sim.operator import rough_initial_pose
 from mmpa.sim.world import SimWorld
 
 PAPER = "paper 001 (Zhou et al. 2020) §4.3.1, Fig. 10 (reflectors occluded by people)"
@@ -75,6 +81,11 @@ class Config(BaseModel):
     subsets_per_count: int = Field(4, ge=1)
     settle_scans: int = Field(15, ge=1)
     site: str = "1"
+    errors: ErrorModelConfig = ErrorModelConfig()  # the twin (its seed: ``seed`` if not given)
+
+    @model_validator(mode="after")
+    def _robot_seed(self) -> Config:
+        return errors_follow_seed(self)
 
 
 def _occluders(
@@ -125,7 +136,7 @@ def _route(world: SimWorld, cm: CostMap, cfg: Config) -> np.ndarray:
 
 def _dropout_run(cfg: Config, k: int) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     rng = np.random.default_rng([cfg.seed, k])
-    with SimWorld(errors=ErrorModelConfig(seed=cfg.seed), site="0", episode=k) as world:
+    with SimWorld(errors=cfg.errors, site="0", episode=k) as world:
         grid = twin_map(world)
         cm = CostMap(twin_nav_map(world))
         route = _route(world, cm, cfg)
@@ -136,9 +147,10 @@ def _dropout_run(cfg: Config, k: int) -> tuple[list[dict[str, Any]], dict[str, A
             m: make_localizer(m, grid, lp, np.random.default_rng([cfg.seed, k, METHODS.index(m)]))
             for m in cfg.methods
         }
-        # one rough initial pose for every method, so that a trial (its initial guess, which
-        # reflectors stay visible) does not depend on how many methods run beside it
-        guess = world.truth.base_pose2d() + rng.normal(0, [0.03, 0.03, 0.02])
+        # one rough initial pose for every method (the operator's), so that a trial (its
+        # initial guess, which reflectors stay visible) does not depend on how many methods
+        # run beside it
+        guess = rough_initial_pose(world, rng)
         for loc in locs.values():
             loc.initialize(guess.copy())
         n_ref = len(world.map_reflectors)
@@ -240,7 +252,7 @@ def _dropout_run(cfg: Config, k: int) -> tuple[list[dict[str, Any]], dict[str, A
 def _visible_count(cfg: Config) -> list[dict[str, Any]]:
     rows = []
     rng = np.random.default_rng([cfg.seed, 999])
-    with SimWorld(errors=ErrorModelConfig(seed=cfg.seed), site=cfg.site, episode=999) as world:
+    with SimWorld(errors=cfg.errors, site=cfg.site, episode=999) as world:
         grid = twin_map(world)
         lp = laser_pose2d(world)
         n_ref = len(world.map_reflectors)
@@ -253,9 +265,10 @@ def _visible_count(cfg: Config) -> list[dict[str, Any]]:
                 enh = make_localizer(
                     "enhanced", grid, lp, np.random.default_rng([cfg.seed, kvis, j])
                 )
-                truth = world.truth.base_pose2d()
-                tri.initialize(truth)
-                enh.initialize(truth + rng.normal(0, [0.05, 0.05, 0.03]))
+                truth = world.truth.base_pose2d()  # evaluation only
+                guess = rough_initial_pose(world, rng)  # the operator's rough pose
+                tri.initialize(guess)
+                enh.initialize(guess.copy())
                 e_tri = []
                 for _ in range(cfg.settle_scans):
                     world.step(1.0 / cfg.scan_rate)

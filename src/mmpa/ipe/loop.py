@@ -308,12 +308,14 @@ class IPE:
             if reg.ok and cfg.projective is not None and isinstance(taught, PointCloud):
                 if src_points is None:  # cropped once per run
                     src_points = _source_points(taught, cfg)
+                cam = self.robot.camera
                 pr = refine_projective(
                     src_points,
                     frame.depth,
                     frame.intrinsics,
                     reg.T,
                     cfg.projective,
+                    disparity_fb=cam.depth_focal_native * cam.baseline,
                 )
                 if pr.ok:
                     dT_C = pr.T

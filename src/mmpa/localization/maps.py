@@ -16,6 +16,7 @@ the mission layer extracts from the scene.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -153,10 +154,18 @@ def rasterize(
     resolution: float = 0.05,
     reflectors: Array | None = None,
     reflector_radius: float = 0.0,
+    warp: Callable[[Array], Array] | None = None,
 ) -> OccupancyGrid:
     """Occupancy grid of ``bounds`` = (xmin, ymin, xmax, ymax) with every cell whose center lies
     in a box (or disc) occupied (100) and all others free (0). Thin obstacles (narrower than a
-    cell) still mark the cell holding their center line."""
+    cell) still mark the cell holding their center line.
+
+    ``warp``: a smooth displacement field ``u(p)`` ((..., 2) m -> (..., 2) m; with an
+    ``on_grid(xs, ys)`` method giving (H, W, 2) on the cell centers, that is used) by which
+    the map is distorted: a world point ``q`` appears in the map at ``q + u(q)``, so the cell
+    centered at ``p`` shows the world at ``p - u(p)`` (the inverse to first order in the
+    field's gradient, ~sigma / length: 0.3 % for a 10 mm / 3 m field). The reflector
+    landmarks are not moved (they carry their own survey error)."""
     xmin, ymin, xmax, ymax = bounds
     if not (xmax > xmin and ymax > ymin):
         raise InvalidInputError(f"map bounds must have xmax > xmin and ymax > ymin, got {bounds}")
@@ -167,6 +176,10 @@ def rasterize(
     xs = xmin + (np.arange(w) + 0.5) * resolution
     ys = ymin + (np.arange(h) + 0.5) * resolution
     X, Y = np.meshgrid(xs, ys)
+    if warp is not None:
+        on_grid = getattr(warp, "on_grid", None)  # a faster tensor-grid evaluation, if any
+        u = np.asarray(on_grid(xs, ys) if on_grid else warp(np.stack([X, Y], axis=-1)), float)
+        X, Y = X - u[..., 0], Y - u[..., 1]
     occ = np.zeros((h, w), dtype=bool)
     half = resolution / 2
     for b in boxes:

@@ -2,8 +2,13 @@
 
 ``twin_map`` builds the occupancy grid the paper builds with Gmapping: here from the scene
 geometry the lidar can see (every static and movable geom of the MuJoCo model that cuts the
-lidar's scan plane), with the SURVEYED reflector positions (``world.map_reflectors``, off the
-true ones per the error model) stored as landmarks.
+lidar's scan plane), rasterized through the mapping distortion of the error model
+(``world.map_warp``: a smooth displacement field, DESIGN.md "Error model v2"), with the
+SURVEYED reflector positions (``world.map_reflectors``, off the true ones per the error model)
+stored as landmarks. ``twin_nav_map`` (the planner's obstacles) stays undistorted.
+
+``localize_standing`` runs a localizer on scans while the base stands still: how a parked
+robot (or one just told its rough pose) gets its pose estimate.
 
 ``navigate`` runs the loop: scans at ``scan_rate`` into the localizer, plan A* from the
 estimate, pure pursuit, final approach with position and heading tolerances, settle and
@@ -34,6 +39,7 @@ __all__ = [
     "NavigateConfig",
     "NavigationResult",
     "laser_pose2d",
+    "localize_standing",
     "navigate",
     "twin_map",
     "twin_nav_map",
@@ -53,9 +59,14 @@ def twin_map(
     resolution: float = 0.05,
     margin: float = 0.5,
     z_band: tuple[float, float] | None = None,
+    warped: bool = True,
 ) -> OccupancyGrid:
     """Occupancy grid of everything the lidar plane cuts (or, with ``z_band`` = (low, high),
-    everything overlapping that height band), plus the surveyed reflector landmarks."""
+    everything overlapping that height band), plus the surveyed reflector landmarks.
+
+    ``warped``: draw it through the world's mapping distortion ``world.map_warp`` (a world
+    point ``q`` lies at ``q + map_warp(q)`` in the map; zero in the ``reference`` profile), as
+    a map made by SLAM at mapping time is; ``False``: the true geometry."""
     m, d = world.model, world.data
     z = float(world.nominal.lidar.T_base_link_laser[2, 3])
     lo, hi = z_band if z_band is not None else (z, z)
@@ -87,8 +98,16 @@ def twin_map(
         cx + sx / 2 + margin,
         cy + sy / 2 + margin,
     )
+    warp = getattr(world, "map_warp", None) if warped else None
+    if warp is not None and getattr(warp, "sigma", 1.0) == 0:
+        warp = None
     return rasterize(
-        boxes, bounds, resolution, world.map_reflectors.copy(), float(sc.reflectors.radius)
+        boxes,
+        bounds,
+        resolution,
+        world.map_reflectors.copy(),
+        float(sc.reflectors.radius),
+        warp=warp,
     )
 
 
@@ -98,7 +117,23 @@ def twin_nav_map(world: SimWorld, resolution: float = 0.05) -> OccupancyGrid:
     artifact); the speed bump (lower than the clearance) stays traversable. Nav2 would get
     these from other sensors or a keep-out layer."""
     b = world.nominal.base
-    return twin_map(world, resolution, z_band=(b.ground_clearance + 0.005, b.body_size[2]))
+    return twin_map(
+        world, resolution, z_band=(b.ground_clearance + 0.005, b.body_size[2]), warped=False
+    )
+
+
+def localize_standing(
+    world: SimWorld, localizer: Localizer, scans: int = 5, scan_rate: float = 10.0
+) -> Array:
+    """Feed ``scans`` scans taken ``1 / scan_rate`` s apart to an initialized ``localizer``
+    while the base stands still (each update forced: Nav2 AMCL would wait for motion), and
+    return its estimate ``[x, y, theta]`` at the current odometry. The truth is not read."""
+    world.base.stop()
+    for _ in range(scans):
+        world.step(1.0 / scan_rate)
+        odom = world.odometry.odometry().pose
+        localizer.update(odom, world.lidar.scan(), force=True)
+    return localizer.pose_at(world.odometry.odometry().pose)
 
 
 class NavigateConfig(BaseModel):

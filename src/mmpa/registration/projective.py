@@ -24,6 +24,20 @@ camera centre, so two captures of one scene differ by ``q = s R p + t``. Estimat
 that error out of the rigid part (0.1 % of 0.45 m is 0.45 mm along the view direction). The
 returned ``T`` is the rigid part ``[R, t]``.
 
+Disparity drift (``disparity_model``, with the depth sensor's ``f b``, focal length in pixels
+times stereo baseline): a stereo camera's disparity drifts between sessions (temperature,
+ambient light: an offset and a gradient across the image, librealsense #10476, #8434), which
+a depth scale does not describe (``dz = -z^2 dd / (f b)``). After IPE converged the camera is
+back at its taught viewpoint, so both captures see each scene point at nearly the same pixel
+and their relative disparity error is a function of the source pixel:
+``dd(x, y) = a + b_x x + b_y y`` (``"affine"``; ``"offset"``: ``a`` only), ``(x, y) =
+(p_x / p_z, p_y / p_z)`` the normalized image coordinates of the source point. The source
+point is moved along its ray to the depth that disparity gives,
+``p(dd) = p / (1 + p_z dd / (f b))``, and ``dd``'s parameters join the Gauss-Newton
+unknowns: ``dQ/dd = -s R p(dd) p_z(dd) / (f b)``, so ``J_a = -(p_z(dd) / (f b)) n . (Q - t)``
+(and ``x``, ``y`` times it for ``b_x``, ``b_y``). The parameters are returned in
+``stages["disparity_px"]`` (px of the native depth stream; ``b`` per unit of ``x``).
+
 The refinement is refused (``ok=False``, with a reason) when too few points associate, the
 inlier RMSE is too large, the pose moves too far from ``init`` or the geometric objective is
 degenerate (smallest eigenvalue of :func:`~mmpa.registration.pipeline.information_matrix` below
@@ -34,7 +48,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -69,6 +83,10 @@ class ProjectiveConfig(BaseModel):
     huber: float = Field(default=0.001, gt=0)  # Huber scale of the residual weights
     estimate_scale: bool = True
     max_scale_error: float = Field(default=0.01, gt=0)  # |s - 1| accepted
+    # the relative disparity drift of the two captures, estimated with the pose (module
+    # docstring); needs the sensor's f b (refine_projective's disparity_fb), else "none"
+    disparity_model: Literal["none", "offset", "affine"] = "affine"
+    max_disparity_error: float = Field(default=1.0, gt=0)  # px, |a| and |b| accepted
     min_inliers: int = Field(default=2000, ge=7)
     min_inlier_fraction: float = Field(default=0.3, ge=0, le=1)
     max_rmse: float = Field(default=0.003, gt=0)
@@ -144,15 +162,20 @@ def refine_projective(
     intrinsics: CameraIntrinsics,
     init: Array,
     cfg: ProjectiveConfig | None = None,
+    disparity_fb: float | None = None,
 ) -> ProjectiveResult:
     """Refine ``T_target_source`` by projective point-to-plane ICP (see the module docstring).
 
     ``source_points`` (N, 3) m in the source camera frame; ``target_depth`` (H, W) m along the
     target camera's optical axis (0 where invalid) with ``intrinsics``; ``init`` (4, 4) a pose
     close to the answer (within a few mm: the association is by projection, not search).
+    ``disparity_fb`` (px m): the depth sensor's focal length (native depth stream, px) times
+    its stereo baseline, for ``cfg.disparity_model``; ``None``: no disparity drift estimated.
     """
+    if disparity_fb is not None and not (np.isfinite(disparity_fb) and disparity_fb > 0):
+        raise InvalidInputError(f"disparity_fb must be positive (f b, px m), got {disparity_fb}")
     with single_threaded_blas():  # small products: a second thread only costs (see _blas)
-        return _refine_projective(source_points, target_depth, intrinsics, init, cfg)
+        return _refine_projective(source_points, target_depth, intrinsics, init, cfg, disparity_fb)
 
 
 def _refine_projective(
@@ -161,6 +184,7 @@ def _refine_projective(
     intrinsics: CameraIntrinsics,
     init: Array,
     cfg: ProjectiveConfig | None,
+    disparity_fb: float | None = None,
 ) -> ProjectiveResult:
     cfg = cfg or ProjectiveConfig()
     t0 = time.perf_counter()
@@ -192,12 +216,29 @@ def _refine_projective(
 
     R, t, log_s = T0[:3, :3].copy(), T0[:3, 3].copy(), 0.0
     n_par = 7 if cfg.estimate_scale else 6
+    n_disp = 0
+    if disparity_fb is not None:
+        n_disp = {"none": 0, "offset": 1, "affine": 3}[cfg.disparity_model]
+    disp = np.zeros(n_disp)  # [a, b_x, b_y] px
+    # the disparity's regressors per source point: 1, x, y (normalized image coordinates)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xs, ys = P[:, 0] / P[:, 2], P[:, 1] / P[:, 2]
+    Xd = np.column_stack([np.ones(len(P)), xs, ys])[:, :n_disp]
+    fb = float(disparity_fb) if disparity_fb is not None else 1.0
 
-    def associate(R: Array, t: Array, log_s: float) -> tuple[Array, Array, Array]:
-        """Project the moved source into the target image; the inlier points ``Q`` (M, 3),
-        the target normals ``n`` (M, 3) (:func:`normal_map`'s central differences, at the
-        associated pixels only) and the point-to-plane residuals ``r`` (M,)."""
-        Q = np.exp(log_s) * (P @ R.T) + t
+    def corrected(disp: Array) -> Array:
+        """The source points moved along their rays by the disparity drift ``disp``."""
+        if n_disp == 0:
+            return P
+        dd = Xd @ disp
+        return P / (1.0 + P[:, 2] * dd / fb)[:, None]
+
+    def associate(R: Array, t: Array, log_s: float, Pc: Array) -> tuple[Array, Array, Array, Array]:
+        """Project the moved source ``Pc`` into the target image; the inlier points ``Q``
+        (M, 3), the target normals ``n`` (M, 3) (:func:`normal_map`'s central differences,
+        at the associated pixels only), the point-to-plane residuals ``r`` (M,) and the
+        inliers' source indices (M,)."""
+        Q = np.exp(log_s) * (Pc @ R.T) + t
         z = Q[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             u = np.rint(fx * Q[:, 0] / z + cx)
@@ -230,40 +271,53 @@ def _refine_projective(
                 + (Qi[:, 2] - zc) * n[:, 2]
             ) / norm
         keep = ok & (np.abs(r) < cfg.gate) & (np.abs(Qi[:, 2] - zc) < cfg.depth_gate)
-        return Qi[keep], n[keep] / norm[keep, None], r[keep]
+        return Qi[keep], n[keep] / norm[keep, None], r[keep], idx[keep]
 
     k = 0
+    n_all = n_par + n_disp
     while k < cfg.iterations:
         k += 1
-        Q, n, r = associate(R, t, log_s)
-        if len(r) < max(cfg.min_inliers, n_par):
+        Pc = corrected(disp)
+        Q, n, r, src = associate(R, t, log_s, Pc)
+        if len(r) < max(cfg.min_inliers, n_all):
             break
         a = np.abs(r)
         w = np.where(a <= cfg.huber, 1.0, cfg.huber / np.maximum(a, 1e-12))
-        J = np.empty((len(r), n_par))
+        J = np.empty((len(r), n_all))
         J[:, :3] = n
         J[:, 3:6] = np.cross(Q, n)
+        # d/d(log s) of s R p + t at the current estimate: s R p = Q - t
+        j_s = np.einsum("ij,ij->i", Q - t, n)
         if cfg.estimate_scale:
-            # d/d(log s) of s R p + t at the current estimate: s R p = Q - t
-            J[:, 6] = np.einsum("ij,ij->i", Q - t, n)
+            J[:, 6] = j_s
+        if n_disp:
+            # dQ/d(dd) = -s R p(dd) p_z(dd) / (f b) (module docstring)
+            J[:, n_par:] = (-(Pc[src, 2] / fb) * j_s)[:, None] * Xd[src]
         Jw = J * w[:, None]
         A = Jw.T @ J
         b = -Jw.T @ r
-        dx = np.linalg.solve(A + 1e-12 * np.eye(n_par), b)
+        dx = np.linalg.solve(A + 1e-12 * np.eye(n_all), b)
         dT = exp_se3(dx[:6])
         R, t = dT[:3, :3] @ R, dT[:3, :3] @ t + dT[:3, 3]
         if cfg.estimate_scale:
             log_s += float(dx[6])
-        if np.linalg.norm(dx) < cfg.tolerance:
+        if n_disp:
+            disp = disp + dx[n_par:]
+        if np.linalg.norm(dx[:n_par]) < cfg.tolerance and (
+            not n_disp or np.max(np.abs(dx[n_par:])) < 1e-4
+        ):
             break
-    Q, n, r = associate(R, t, log_s)
+    Pc = corrected(disp)
+    Q, n, r, _ = associate(R, t, log_s, Pc)
+    if n_disp:
+        stages["disparity_px"] = [float(x) for x in disp]
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
     scale = float(np.exp(log_s))
     n_in = len(r)
     frac = n_in / max(len(P), 1)
     rmse = float(np.sqrt(np.mean(r**2))) if n_in else float("inf")
-    c = P.mean(axis=0)
+    c = Pc.mean(axis=0)
     shift = float(np.linalg.norm((R - T0[:3, :3]) @ c + t - T0[:3, 3]))
     dR = R @ T0[:3, :3].T
     rot = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0))))
@@ -288,6 +342,12 @@ def _refine_projective(
         return result(False, f"inlier RMSE {rmse * 1e3:.2f} mm > {cfg.max_rmse * 1e3:.2f} mm")
     if abs(scale - 1.0) > cfg.max_scale_error:
         return result(False, f"depth scale {scale:.4f} beyond 1 +- {cfg.max_scale_error}")
+    if n_disp and not np.all(np.abs(disp) <= cfg.max_disparity_error):
+        return result(
+            False,
+            f"disparity drift {np.round(disp, 3).tolist()} px beyond "
+            f"+-{cfg.max_disparity_error} px",
+        )
     if shift > cfg.max_shift or rot > cfg.max_rotation_deg:
         return result(
             False,

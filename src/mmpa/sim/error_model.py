@@ -317,9 +317,7 @@ class ErrorModelConfig(_Cfg):
         name = data.get("profile", "realistic")
         if name not in PROFILES:
             return data  # the Literal field reports the unknown name
-        given = {
-            k: (v.model_dump() if isinstance(v, BaseModel) else v) for k, v in data.items()
-        }
+        given = {k: (v.model_dump() if isinstance(v, BaseModel) else v) for k, v in data.items()}
         return _merge(PROFILES[name], given)
 
     @classmethod

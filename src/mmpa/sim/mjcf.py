@@ -4,13 +4,15 @@ The generator is the single source of truth for the twin's geometry; nothing is 
 Names are a contract with ``mmpa.sim.sensors`` and ``mmpa.sim.world``:
 
 - bodies ``base_link`` (free joint ``base_free``), ``wheel_left``/``wheel_right`` (hinges
-  ``wheel_left_joint``/``wheel_right_joint``), ``arm_base``, ``link1``..``link6``
+  ``wheel_left_joint``/``wheel_right_joint``), ``arm_base`` (with a compliant mount: hinges
+  ``mount_roll``/``mount_pitch``, see :class:`MountCompliance`), ``link1``..``link6``
   (hinges ``joint1``..``joint6``), ``flange``, ``finger_left``/``finger_right``
   (slides ``finger_left_joint``/``finger_right_joint``, 0 = open);
 - camera ``wrist_camera``; sites ``laser`` (base), ``photosensor`` and ``tcp`` (tool);
 - actuators ``wheel_left_vel``, ``wheel_right_vel``, ``arm1``..``arm6``, ``gripper``;
 - geoms ``reflector_<i>``, ``fiducial_<i>_reflector``, ``fiducial_<i>_wall_<k>``;
-- the static body ``speed_bump``; free bodies named after movable items and grasp objects.
+- the static body ``speed_bump``; free bodies named after movable items and grasp objects;
+  a body per loose desk item (static unless also free), named after the item.
 
 Geom groups: 0 static world, 1 movable objects, 2 reflectors and fiducials, 3 robot
 collision, 4 robot visual. Robot geoms never collide with each other.
@@ -27,15 +29,26 @@ import numpy as np
 from mmpa.geometry import Array, make_T, rot_x, rot_y, rot_z, trans
 from mmpa.robot.description import RobotDescription
 from mmpa.sim import textures
+from mmpa.sim.error_model import BaseCompliance
 from mmpa.sim.scene import DeskItem, GraspObject, SceneConfig, Workbench
 
-__all__ = ["GROUP", "BuiltModel", "build_model", "desk_item_pose"]
+__all__ = [
+    "GROUP",
+    "MOUNT_JOINTS",
+    "BuiltModel",
+    "MountCompliance",
+    "build_model",
+    "desk_item_pose",
+    "full_reach_configuration",
+    "mount_compliance",
+]
 
 GROUP = {"world": 0, "objects": 1, "reflectors": 2, "robot": 3, "robot_visual": 4}
 
 OPTICAL_FROM_MUJOCO = np.diag([1.0, -1.0, -1.0])  # MuJoCo cameras look along -z, y up
 _ROBOT_COLLISION = {"contype": "2", "conaffinity": "1", "group": str(GROUP["robot"])}
 _ROBOT_VISUAL = {"contype": "0", "conaffinity": "0", "group": str(GROUP["robot_visual"])}
+MOUNT_JOINTS = ("mount_roll", "mount_pitch")  # hinges of the compliant arm mount, if any
 
 
 @dataclass
@@ -47,6 +60,27 @@ class BuiltModel:
 
     def compile(self) -> mujoco.MjModel:
         return mujoco.MjModel.from_xml_string(self.xml, self.assets)
+
+
+@dataclass(frozen=True)
+class MountCompliance:
+    """A compliant mount (sprung suspension, tyres, a compliant plate) between the chassis
+    ``base_link`` and ``arm_base``: two hinges through the ``arm_base`` origin, ``mount_roll``
+    about base_link x and ``mount_pitch`` about base_link y, each a torsion spring with
+    damper:
+
+        tau_j = -stiffness (q_j - springref_j) - damping qdot_j        (N m; q rad, qdot rad/s)
+
+    The arm's weight loads the mount (its motors' gravity compensation does not: the mount
+    joints take no actuator force), so at rest ``q = springref + tau_g(q_arm) / stiffness``
+    with ``tau_g`` the gravity torque of everything above the mount about each hinge axis.
+    ``springref`` is the spring's preload that puts the folded arm's equilibrium at
+    ``q = 0`` (arm base level). See :func:`mount_compliance`."""
+
+    stiffness: float  # N m/rad, both hinges
+    damping: float  # N m s/rad, both hinges
+    springref: tuple[float, float]  # rad, (roll, pitch) rest angles of the springs
+    tilt_full_reach: float = 0.0  # rad, the tilt change folded -> full reach it was made for
 
 
 def _f(*xs: float) -> str:
@@ -280,12 +314,15 @@ class _Builder:
             self.build_item(bench, body, item, j)
 
     def build_item(self, bench: Workbench, desk: ET.Element, item: DeskItem, j: int) -> None:
-        name = item.name or f"{bench.name}_{item.kind}_{j}"
-        if item.free:
+        name = bench.item_name(j)
+        if item.free or item.loose:
+            # its own body at the item's desk pose: a free one moves by physics, a loose static
+            # one by the scene change (mmpa.sim.scene_change sets its body_pos / body_quat)
             T = desk_item_pose(bench, item)
             parent = ET.SubElement(self.world, "body", name=name, **_pose_attrs(T))
-            ET.SubElement(parent, "freejoint", name=f"{name}_free")
-            group = str(GROUP["objects"])
+            if item.free:
+                ET.SubElement(parent, "freejoint", name=f"{name}_free")
+            group = str(GROUP["objects"]) if item.free else "0"
             base = np.zeros(3)
             yaw = 0.0
         else:
@@ -596,7 +633,7 @@ class _Builder:
                 )
 
     # --- robot --------------------------------------------------------------------------
-    def build_robot(self, start_pose2d: Array) -> None:
+    def build_robot(self, start_pose2d: Array, mount: MountCompliance | None = None) -> None:
         rb = self.robot
         b = rb.base
         x, y, th = start_pose2d
@@ -721,15 +758,17 @@ class _Builder:
             mass="0",
             **_ROBOT_VISUAL,
         )
-        self.build_arm(base)
+        self.build_arm(base, mount)
 
-    def build_arm(self, base: ET.Element) -> None:
+    def build_arm(self, base: ET.Element, mount: MountCompliance | None = None) -> None:
         rb = self.robot
         arm = rb.arm
         a, d, alpha, off = arm.dh.as_arrays()
         parent = ET.SubElement(
             base, "body", name="arm_base", **_pose_attrs(rb.T_base_link_arm_base)
         )
+        if mount is not None:
+            self.build_mount(parent, mount)
         ET.SubElement(
             parent,
             "geom",
@@ -811,6 +850,36 @@ class _Builder:
             )
             parent = nxt
         self.build_tool(parent)
+
+    def build_mount(self, arm_base: ET.Element, mount: MountCompliance) -> None:
+        """The hinges of the compliant mount (:class:`MountCompliance`) in ``arm_base``.
+
+        Their axes are base_link's x and y written in the arm_base frame. The arm's links
+        carry ``gravcomp`` (their motors hold them up), which MuJoCo applies as a force on
+        every ancestor joint; the mount is no motor, so its joints route that compensation
+        to their actuator force and clamp it to zero (``actuatorgravcomp``,
+        ``actuatorfrcrange``): the mount carries the arm's full weight."""
+        R = self.robot.T_base_link_arm_base[:3, :3]
+        # a thin mount plate: a body with joints needs a mass of its own
+        ET.SubElement(
+            arm_base, "inertial", pos="0 0 0.01", mass="0.2", diaginertia="2e-4 2e-4 4e-4"
+        )
+        for name, axis, ref in zip(
+            MOUNT_JOINTS, (R.T[:, 0], R.T[:, 1]), mount.springref, strict=True
+        ):
+            ET.SubElement(
+                arm_base,
+                "joint",
+                name=name,
+                type="hinge",
+                pos="0 0 0",
+                axis=_f(*axis),
+                stiffness=_f(mount.stiffness),
+                springref=_f(ref),
+                damping=_f(mount.damping),
+                actuatorgravcomp="true",
+                actuatorfrcrange="-1e-12 1e-12",
+            )
 
     def build_tool(self, flange: ET.Element) -> None:
         rb = self.robot
@@ -927,17 +996,84 @@ def _quat_of(R: Array) -> Array:
     return q
 
 
+def full_reach_configuration(robot: RobotDescription) -> Array:
+    """The arm at full reach (rad, (6,)): ``home`` (the folded pose) with shoulder and elbow
+    straight (``q2 = q3 = 0``: upper arm and forearm horizontal, stretched out in the
+    direction ``q1`` of home), the wrist as at home."""
+    q = np.array(robot.arm.home, float)
+    q[1:3] = 0.0
+    return q
+
+
+def mount_compliance(
+    scene: SceneConfig,
+    robot: RobotDescription,
+    tilt_full_reach_deg: float,
+    damping_ratio: float = 1.0,
+) -> MountCompliance | None:
+    """The compliant mount that tilts the arm base by ``tilt_full_reach_deg`` (deg) when the
+    arm moves from its folded pose (``robot.arm.home``) to full reach
+    (:func:`full_reach_configuration`); ``None`` (a rigid mount) for a tilt of 0.
+
+    With ``tau_f``, ``tau_r`` (N m, (2,)) the gravity torques about the (roll, pitch) hinges
+    in the folded and full-reach configurations (base level, from the model's own masses and
+    centres of mass: ``tau = -qfrc_bias`` at rest) and ``theta`` the tilt (rad):
+
+        stiffness = |tau_r - tau_f| / theta                                   (N m/rad)
+        springref = -tau_f / stiffness      (folded arm at rest: q = 0, arm base level)
+        damping   = 2 zeta sqrt(stiffness I)                                  (N m s/rad)
+
+    with ``I`` (kg m^2) the largest inertia about a hinge of the two configurations (full
+    reach), so the mount is ``damping_ratio`` (``zeta``) times critically damped at full
+    reach and more than that when the arm is folded. ``scene`` only names the model built
+    for the computation (the robot alone, nothing of the world)."""
+    theta = float(np.deg2rad(tilt_full_reach_deg))
+    if not (np.isfinite(theta) and theta >= 0):
+        raise ValueError(f"tilt must be a finite non-negative angle, got {tilt_full_reach_deg}")
+    if theta == 0.0:
+        return None
+    b = _Builder(scene, robot)
+    b.build_robot(np.zeros(3), MountCompliance(1.0, 0.0, (0.0, 0.0)))
+    model = mujoco.MjModel.from_xml_string(ET.tostring(b.root, encoding="unicode"))
+    data = mujoco.MjData(model)
+    dofs = [model.jnt_dofadr[model.joint(n).id] for n in MOUNT_JOINTS]
+    arm_q = [model.jnt_qposadr[model.joint(f"joint{i}").id] for i in range(1, 7)]
+    M = np.zeros((model.nv, model.nv))
+    torques, inertia = [], []
+    for q in (np.array(robot.arm.home, float), full_reach_configuration(robot)):
+        data.qpos[:] = model.qpos0
+        data.qpos[arm_q] = q
+        data.qvel[:] = 0.0
+        mujoco.mj_forward(model, data)
+        torques.append(-data.qfrc_bias[dofs].copy())
+        mujoco.mj_fullM(model, data, M)
+        inertia.append(M[dofs, dofs].copy())
+    tau_f, tau_r = torques
+    k = float(np.linalg.norm(tau_r - tau_f)) / theta
+    c = 2.0 * damping_ratio * float(np.sqrt(k * np.max(inertia)))
+    ref = -tau_f / k
+    return MountCompliance(k, c, (float(ref[0]), float(ref[1])), theta)
+
+
 def build_model(
     scene: SceneConfig,
     robot: RobotDescription,
     start_pose2d: Array | None = None,
+    compliance: BaseCompliance | None = None,
 ) -> BuiltModel:
     """MJCF for ``scene`` with ``robot`` (pass the TRUE robot) parked at ``start_pose2d``
-    (``[x, y, yaw]``; default: site "0")."""
+    (``[x, y, yaw]``; default: site "0"). With ``compliance`` of a non-zero tilt the arm
+    sits on a compliant mount (:func:`mount_compliance`); otherwise (and by default) the
+    arm base is rigidly fixed to the chassis and the model has no mount joints."""
     b = _Builder(scene, robot)
     b.build_world()
     if start_pose2d is None:
         start_pose2d = scene.sites["0"].pose2d if "0" in scene.sites else np.zeros(3)
-    b.build_robot(np.asarray(start_pose2d, float))
+    mount = (
+        mount_compliance(scene, robot, compliance.tilt_full_reach_deg)
+        if compliance is not None
+        else None
+    )
+    b.build_robot(np.asarray(start_pose2d, float), mount)
     ET.indent(b.root)
     return BuiltModel(ET.tostring(b.root, encoding="unicode"), b.assets)

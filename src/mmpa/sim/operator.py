@@ -22,6 +22,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from mmpa.errors import ConfigError, UnknownNameError
 from mmpa.geometry import Array, inv, make_T, rot_z, rpy_to_R
 from mmpa.robot.kinematics import fk, ik_nearest
+from mmpa.sim.lidar_noise import rough_pose
 from mmpa.sim.world import SimWorld
 
 __all__ = [
@@ -30,6 +31,7 @@ __all__ = [
     "Waypoint",
     "demonstrate",
     "load_demonstrations",
+    "rough_initial_pose",
     "sampling_joints",
     "true_tcp_in_map",
 ]
@@ -239,3 +241,19 @@ def true_tcp_in_map(world: SimWorld, q: Array) -> Array:
     arm = world.true_robot.arm
     T = world.truth.T_map_arm_base() @ fk(arm.dh, q, world.true_robot.gripper.T_flange_tcp)
     return T[..., :3, 3]
+
+
+def rough_initial_pose(world: SimWorld, rng: np.random.Generator | None = None) -> Array:
+    """The rough pose ``[x, y, theta]`` the operator gives the localizer ('2D Pose Estimate'):
+    the TRUE base pose (the person sees the robot) plus ``N(0, initial_pos_sigma)`` m per axis
+    and ``N(0, initial_yaw_sigma_deg)`` on the heading (the error model's ``operator``
+    section, DESIGN.md "Error model v2"). ``rng``: default the world's ``operator_pose``
+    stream of its episode (the same draw on every call: pass a generator for several)."""
+    op = world.error_model.config.operator
+    gen = rng if rng is not None else world.error_model.rng("operator_pose", world.episode)
+    return rough_pose(
+        world.truth.base_pose2d(),
+        gen,
+        op.initial_pos_sigma,
+        float(np.deg2rad(op.initial_yaw_sigma_deg)),
+    )

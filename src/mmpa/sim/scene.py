@@ -22,6 +22,7 @@ from mmpa.errors import ConfigError, UnknownNameError
 from mmpa.geometry import Array, quat_xyzw_to_R, wrap_angle
 
 __all__ = [
+    "FIXED_KINDS",
     "DeskItem",
     "FiducialArtifact",
     "GraspObject",
@@ -133,8 +134,20 @@ ItemKind = Literal[
 ]
 
 
+#: kinds that never move between teaching and repeating: the backboard and the task's target
+FIXED_KINDS = frozenset({"backboard", "dot"})
+
+
 class DeskItem(_Model):
-    """Something on a desk, in the desk-top frame. ``free`` items are movable bodies."""
+    """Something on a desk, in the desk-top frame.
+
+    ``free``: a physics free body (it can be pushed, grasped, knocked over).
+    ``loose``: a thing a person moves while using the bench (cups, bottles, droppers), as
+    opposed to a fixture (containers plumbed in, stands, backboards, tapes stuck on the top,
+    the task's target). Loose items are their own bodies in the model, so the scene change
+    between teaching and repeating (:mod:`mmpa.sim.scene_change`, error model v2) can nudge
+    them; a loose item need not be ``free``. Backboards and ``dot`` targets cannot be loose.
+    """
 
     kind: ItemKind
     name: str | None = None
@@ -143,7 +156,14 @@ class DeskItem(_Model):
     size: tuple[float, ...] | None = None  # kind-specific; defaults in mjcf
     color: tuple[float, float, float] | None = None  # RGB in [0, 1]; None: seeded random
     free: bool = False
+    loose: bool = False
     text: str | None = None  # for letter tapes; None: seeded random letters
+
+    @model_validator(mode="after")
+    def _fixed_kinds_stay(self) -> DeskItem:
+        if self.loose and self.kind in FIXED_KINDS:
+            raise ValueError(f"a {self.kind} never moves: it cannot be loose")
+        return self
 
 
 class Workbench(_Model):
@@ -155,6 +175,11 @@ class Workbench(_Model):
     size: Vec3 = (1.2, 0.6, 0.72)  # length, depth, height
     top_color: Vec3 | None = None  # RGB in [0, 1] for a plain top; None: wood texture
     items: list[DeskItem] = Field(default_factory=list)
+
+    def item_name(self, j: int) -> str:
+        """The model name of item ``j``: its ``name``, else ``<bench>_<kind>_<j>``."""
+        item = self.items[j]
+        return item.name or f"{self.name}_{item.kind}_{j}"
 
     @model_validator(mode="after")
     def _items_on_desk(self) -> Workbench:

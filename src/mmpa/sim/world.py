@@ -4,7 +4,8 @@
 (wheel velocity, arm joint position, gripper position), and hands out simulated devices that
 implement the hardware-neutral protocols of ``mmpa.robot.interfaces``. Software must only
 use ``world.nominal`` (the robot it believes in), ``world.map_reflectors`` (surveyed, not
-true) and the devices; ``world.truth`` is for evaluation.
+true), maps drawn through ``world.map_warp`` (the mapping distortion) and the devices;
+``world.truth`` is for evaluation.
 
 Units: m, rad, s. Every random draw comes from the error model's seeded streams.
 """
@@ -23,7 +24,8 @@ from mmpa.geometry import Array, T_to_se2, make_T, rpy_to_R
 from mmpa.robot.description import RobotDescription, default_robot
 from mmpa.robot.interfaces import Odometry
 from mmpa.sim.error_model import ErrorModel, ErrorModelConfig
-from mmpa.sim.mjcf import build_model
+from mmpa.sim.lidar_noise import SmoothWarp
+from mmpa.sim.mjcf import MOUNT_JOINTS, build_model
 from mmpa.sim.scene import SceneConfig, load_scene
 from mmpa.sim.sensors import (
     CAMERA_NAME,
@@ -42,6 +44,19 @@ _CONTROL_EVERY = 5  # physics steps per odometry update (100 Hz at dt = 2 ms)
 
 def _T_from_xpos(xpos: np.ndarray, xmat: np.ndarray) -> Array:
     return make_T(np.asarray(xmat).reshape(3, 3), xpos)
+
+
+def _joint_names(m: mujoco.MjModel) -> set[str]:
+    return {m.joint(i).name for i in range(m.njnt)}
+
+
+def _has_ancestor(m: mujoco.MjModel, body: int, ancestor: int) -> bool:
+    """Whether ``ancestor`` is ``body`` or one of its parents."""
+    while body > 0:
+        if body == ancestor:
+            return True
+        body = int(m.body_parentid[body])
+    return False
 
 
 @dataclass
@@ -80,7 +95,9 @@ class SimWorld:
         self.true_robot = self.error_model.true
         self.episode = episode
         start = self.scene.site(site)
-        built = build_model(self.scene, self.true_robot, start.pose2d)
+        built = build_model(
+            self.scene, self.true_robot, start.pose2d, self.error_model.config.compliance
+        )
         self.model = built.compile()
         self.data = mujoco.MjData(self.model)
         m = self.model
@@ -92,6 +109,14 @@ class SimWorld:
         self._wheel_act = (m.actuator("wheel_left_vel").id, m.actuator("wheel_right_vel").id)
         self._grip_act = m.actuator("gripper").id
         self._finger_qadr = m.jnt_qposadr[m.joint("finger_left_joint").id]
+        # compliant arm mount (base compliance of the error model; absent when rigid)
+        names = _joint_names(m)
+        mount = [m.joint(j).id for j in MOUNT_JOINTS if j in names]
+        self._mount_jnt = np.array(mount, dtype=int)
+        arm_base = m.body("arm_base").id
+        self._mount_bodies = np.array(
+            [b for b in range(m.nbody) if _has_ancestor(m, b, arm_base)], dtype=int
+        )
         self._bump_body = m.body("speed_bump").id if self.scene.speed_bump else None
         self._bump_pos = m.body_pos[self._bump_body].copy() if self._bump_body is not None else None
         rng = self.error_model.rng
@@ -101,6 +126,10 @@ class SimWorld:
             self.error_model.config.lidar.reflector_map_sigma,
             (len(self.scene.reflectors.positions), 2),
         )
+        li = self.error_model.config.lidar
+        #: distortion of the occupancy map made at mapping time (error model v2, fixed per
+        #: robot instance): a world point ``q`` appears in the map at ``q + map_warp(q)``
+        self.map_warp = SmoothWarp.sample(rng("map_warp"), li.map_warp_sigma, li.map_warp_length)
         self._motion: _ArmMotion | None = None
         self._steps = 0
         self.base = SimBase(self)
@@ -143,6 +172,7 @@ class SimWorld:
                 self.error_model.config.lidar,
                 self.error_model.rng("lidar", self.episode),
                 lambda: float(self.data.time),
+                bias_rng=self.error_model.rng("reflector_bias"),  # fixed per robot instance
             )
         return self._lidar
 
@@ -236,12 +266,14 @@ class SimWorld:
 
     def set_arm_configuration(self, q: Array) -> None:
         """Teleport the arm to ``q`` (rad, (6,)) with zero velocity, holding it there: for
-        rendering views (training data), not for motion (use ``arm``)."""
+        rendering views (training data), not for motion (use ``arm``). A compliant arm
+        mount is put at rest under the arm's new weight distribution."""
         q = self.arm._check(q)
         self.data.qpos[self._arm_qadr] = q
         self.data.qvel[self._arm_dadr] = 0.0
         self.data.ctrl[self._arm_act] = q
         self._motion = None
+        self._rest_mount()
         mujoco.mj_forward(self.model, self.data)
 
     @property
@@ -289,10 +321,8 @@ class SimWorld:
         )
         if self._camera is not None:
             self._camera.set_session(*self._camera_session)
-        try:  # TODO(lead): drop the guard once scene_change lands
-            from mmpa.sim.scene_change import apply_scene_change
-        except ImportError:
-            return {}
+        from mmpa.sim.scene_change import apply_scene_change
+
         self.scene_changes = apply_scene_change(self, k)
         return self.scene_changes
 
@@ -343,6 +373,7 @@ class SimWorld:
         d.ctrl[self._arm_act] = q
         d.ctrl[self._grip_act] = 0.0
         self._motion = None
+        self._rest_mount()
         mujoco.mj_forward(self.model, d)
         self._odometry = SimOdometry(
             self.true_robot.base,
@@ -358,6 +389,29 @@ class SimWorld:
                 self.step(0.1)
         self._odometry.reset()
         self._odometry.update(self.truth.base_pose2d(), float(d.time))
+
+    def _rest_mount(self) -> None:
+        """Put the compliant arm mount (if any) at rest under the arm's weight for the
+        current base pose and arm configuration (quasi-static, zero velocity), as the
+        physics would settle it: per hinge ``j`` (axis ``a_j`` through ``p_j``, map)
+
+            q_j = springref_j + tau_j / k_j,   tau_j = a_j . sum_i (c_i - p_j) x (m_i g)
+
+        over the bodies ``i`` above the mount (mass ``m_i`` kg at ``c_i`` m, gravity ``g``
+        m/s^2; N m, rad, N m/rad). Runs ``mj_kinematics`` (two passes: the tilt moves the
+        centres of mass by a negligible amount). No-op for a rigid mount."""
+        if self._mount_jnt.size == 0:
+            return
+        m, d = self.model, self.data
+        qadr, dadr = m.jnt_qposadr[self._mount_jnt], m.jnt_dofadr[self._mount_jnt]
+        w = m.body_mass[self._mount_bodies][:, None] * m.opt.gravity
+        for _ in range(2):
+            mujoco.mj_kinematics(m, d)
+            c = d.xipos[self._mount_bodies]
+            for j, qa in zip(self._mount_jnt, qadr, strict=True):
+                tau = d.xaxis[j] @ np.cross(c - d.xanchor[j], w).sum(axis=0)
+                d.qpos[qa] = m.qpos_spring[qa] + tau / m.jnt_stiffness[j]
+        d.qvel[dadr] = 0.0
 
     def _bump_pose(self, pose2d: Array) -> tuple[float, float, float]:
         """``(z, roll, pitch)`` that put both wheels and the caster on the ground/speed bump
@@ -395,7 +449,8 @@ class SimWorld:
         """Kinematic mode: place the base at ``pose2d`` = ``[x, y, yaw]`` (tilted by ``roll``,
         ``pitch`` rad, at its current height) and the arm at ``q_arm`` without running the
         dynamics, and bring body poses, sensors and ground truth level with it
-        (``mj_kinematics``, a few microseconds). For fast twins whose motion is prescribed
+        (``mj_kinematics``, a few microseconds). A compliant arm mount is put at rest under
+        the arm's weight (:meth:`_rest_mount`). For fast twins whose motion is prescribed
         (e.g. a base driving a known noisy trajectory); odometry is not updated."""
         pose2d = np.asarray(pose2d, float)
         q = np.asarray(q_arm, float)
@@ -415,6 +470,7 @@ class SimWorld:
         d.ctrl[self._arm_act] = q
         if time is not None:
             d.time = float(time)
+        self._rest_mount()
         mujoco.mj_kinematics(self.model, d)
 
     # --- physics --------------------------------------------------------------------------
