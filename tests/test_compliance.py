@@ -127,7 +127,7 @@ def test_kinematic_modes_and_truth_carry_the_tilt(reached) -> None:
     np.testing.assert_allclose(t.T_map_flange(), T_flange, atol=1e-9)
     T_cam = T_flange @ world.true_robot.camera.T_flange_camera
     np.testing.assert_allclose(t.T_map_camera(), T_cam, atol=1e-9)
-    # kinematic mode (mj_kinematics: bodies and sites)
+    # kinematic mode (mj_kinematics and mj_camlight: bodies, sites and cameras)
     pose = world.truth.base_pose2d()
     world.set_kinematic_state(pose, np.asarray(world.nominal.arm.home))
     assert np.degrees(np.abs(world.data.qpos[qa])).max() < 1e-3
@@ -135,9 +135,11 @@ def test_kinematic_modes_and_truth_carry_the_tilt(reached) -> None:
     np.testing.assert_allclose(world.data.qpos[qa], settled, rtol=0.02, atol=1e-6)
     np.testing.assert_allclose(world.arm.joint_positions(), q_reach)
     T_ab = t.T_map_arm_base()
-    np.testing.assert_allclose(
-        t.T_map_flange(), T_ab @ fk(world.true_robot.arm.dh, q_reach), atol=1e-9
-    )
+    T_flange = T_ab @ fk(world.true_robot.arm.dh, q_reach)
+    np.testing.assert_allclose(t.T_map_flange(), T_flange, atol=1e-9)
+    # the camera follows too (mj_camlight): what the wrist camera renders is this pose
+    T_cam = T_flange @ world.true_robot.camera.T_flange_camera
+    np.testing.assert_allclose(t.T_map_camera(), T_cam, atol=1e-9)
     T_bl_ab = inv(t.T_map_base_link()) @ T_ab
     tilt = _z_tilt_deg(world.true_robot.T_base_link_arm_base[:3, :3], T_bl_ab[:3, :3])
     assert tilt == pytest.approx(TILT_DEG[profile], rel=0.10)

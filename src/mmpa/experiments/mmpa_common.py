@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from mmpa.errors import ConfigError, UnknownNameError
 from mmpa.geometry import (
@@ -100,6 +100,13 @@ class MMPAExperimentConfig(BaseModel):
     automation: AutomationConfig = AutomationConfig()
     errors: ErrorModelConfig = ErrorModelConfig()
     scene: str | None = None
+
+    @model_validator(mode="after")
+    def _robot_seed(self) -> MMPAExperimentConfig:
+        # --seed picks the twin's robot instance (and so every draw) unless errors.seed is given
+        from mmpa.experiments.localization import errors_follow_seed
+
+        return errors_follow_seed(self)
 
     def n_trials(self, default: int = 30) -> int:
         return self.trials or default

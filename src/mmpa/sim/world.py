@@ -448,8 +448,8 @@ class SimWorld:
     ) -> None:
         """Kinematic mode: place the base at ``pose2d`` = ``[x, y, yaw]`` (tilted by ``roll``,
         ``pitch`` rad, at its current height) and the arm at ``q_arm`` without running the
-        dynamics, and bring body poses, sensors and ground truth level with it
-        (``mj_kinematics``, a few microseconds). A compliant arm mount is put at rest under
+        dynamics, and bring body poses, cameras, sensors and ground truth level with it
+        (``mj_kinematics`` and ``mj_camlight``, a few microseconds). A compliant arm mount is put at rest under
         the arm's weight (:meth:`_rest_mount`). For fast twins whose motion is prescribed
         (e.g. a base driving a known noisy trajectory); odometry is not updated."""
         pose2d = np.asarray(pose2d, float)
@@ -472,6 +472,7 @@ class SimWorld:
             d.time = float(time)
         self._rest_mount()
         mujoco.mj_kinematics(self.model, d)
+        mujoco.mj_camlight(self.model, d)  # cameras (and lights) follow their bodies
 
     # --- physics --------------------------------------------------------------------------
     def step(self, duration: float) -> None:
