@@ -449,9 +449,10 @@ class SimWorld:
         """Kinematic mode: place the base at ``pose2d`` = ``[x, y, yaw]`` (tilted by ``roll``,
         ``pitch`` rad, at its current height) and the arm at ``q_arm`` without running the
         dynamics, and bring body poses, cameras, sensors and ground truth level with it
-        (``mj_kinematics`` and ``mj_camlight``, a few microseconds). A compliant arm mount is put at rest under
-        the arm's weight (:meth:`_rest_mount`). For fast twins whose motion is prescribed
-        (e.g. a base driving a known noisy trajectory); odometry is not updated."""
+        (``mj_kinematics`` and ``mj_camlight``, a few microseconds). A compliant arm mount
+        is put at rest under the arm's weight (:meth:`_rest_mount`). For fast twins whose
+        motion is prescribed (e.g. a base driving a known noisy trajectory); odometry is not
+        updated."""
         pose2d = np.asarray(pose2d, float)
         q = np.asarray(q_arm, float)
         if pose2d.shape != (3,) or q.shape != (6,):
