@@ -194,3 +194,23 @@ def test_disparity_drift_is_estimated_with_the_pose():
     assert translation_error(T_TRUE, plain.T) > 5 * translation_error(T_TRUE, r.T)
     with pytest.raises(InvalidInputError):
         refine_projective(src, tgt, K, init, cfg, disparity_fb=-1.0)
+
+
+def test_robust_weights_are_the_kernels_rho_prime_over_r():
+    """IRLS weights w(r) = rho'(r) / r, checked by finite differences of rho."""
+    from mmpa.registration import robust_weights
+
+    c = 0.001
+    r = np.array([-0.004, -0.0015, -0.0003, 0.0002, 0.0009, 0.0025, 0.006])
+    rhos = {
+        "huber": lambda x: np.where(np.abs(x) <= c, 0.5 * x * x, c * (np.abs(x) - 0.5 * c)),
+        "geman_mcclure": lambda x: 0.5 * x * x / (1.0 + (x / c) ** 2),
+    }
+    h = 1e-9
+    for name, rho in rhos.items():
+        d = (rho(r + h) - rho(r - h)) / (2 * h)
+        np.testing.assert_allclose(robust_weights(r, c, name), d / r, rtol=1e-5)
+    # redescending: far residuals weigh (almost) nothing under Geman-McClure, c/|r| under Huber
+    assert robust_weights(np.array([0.01]), c, "geman_mcclure")[0] < 1e-3
+    with pytest.raises(InvalidInputError):
+        robust_weights(r, c, "tukey")

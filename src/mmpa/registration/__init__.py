@@ -20,6 +20,7 @@ from mmpa.registration.projective import (
     ProjectiveResult,
     normal_map,
     refine_projective,
+    robust_weights,
     vertex_map,
 )
 
@@ -35,5 +36,6 @@ __all__ = [
     "prepare",
     "refine_projective",
     "register",
+    "robust_weights",
     "vertex_map",
 ]
