@@ -1,2 +1,3 @@
-"""The MuJoCo digital twin: the TRUE world and robot, sensors with the reference error model,
-and ground-truth accessors for evaluation only. Algorithm code never imports this package."""
+"""The MuJoCo digital twin: the TRUE world and robot, sensors with the error model (profiles
+ideal, reference, realistic, harsh), and ground-truth accessors for evaluation only.
+Algorithm code never imports this package."""

@@ -1,5 +1,5 @@
 """Simulated sensors: the hardware interfaces of ``mmpa.robot.interfaces`` on a MuJoCo model,
-with the reference error model of DESIGN.md.
+with the error model of DESIGN.md (its profiles, "Error model v2").
 
 Sensors only READ the simulation state: the world owns stepping and calls ``mj_forward`` (or
 steps) before a sensor is read, so ``data`` holds current poses. Each sensor draws its noise
