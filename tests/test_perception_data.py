@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError, UnknownNameError
+from mmpa.errors import ConfigError, InvalidInputError, UnknownNameError
 from mmpa.geometry import apply, inv
 from mmpa.perception import CLASSES
 from mmpa.perception.dataset import DatasetConfig, load_dataset, render_dataset, save_dataset
@@ -148,3 +148,15 @@ def test_box_iou_against_areas_by_hand():
     assert iou[0] == pytest.approx([1 / 3, 1.0, 0.0])
     assert iou[1] == pytest.approx([0.0, 0.0, 0.0])
     assert box_iou(a[0], b[0]).shape == (1, 1)
+
+
+def test_dataset_profile_sets_the_camera_noise():
+    """The twin's profile reaches the rendered images: the same scenes (same seed), with no
+    noise under 'ideal' and the realistic camera's noise under 'realistic'."""
+    a = render_dataset(DatasetConfig(n_images=1, seed=5, profile="ideal"))
+    b = render_dataset(DatasetConfig(n_images=1, seed=5, profile="realistic"))
+    assert a.images.shape == b.images.shape
+    diff = np.abs(a.images.astype(int) - b.images.astype(int))
+    assert 0.5 < diff.mean() < 10  # per-pixel noise of ~2/255, not another scene
+    with pytest.raises(ConfigError):
+        render_dataset(DatasetConfig(n_images=1, seed=5, profile="kind"))

@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from mmpa.cli.common import console, fail
+from mmpa.cli.common import ProfileOpt, console, fail
 from mmpa.errors import MMPAError
 
 perception_app = typer.Typer(help="Object detector (paper 001 §3.2.1): data, training, evaluation.")
@@ -50,6 +50,7 @@ def dataset_cmd(
     lighting: Annotated[
         str | None, typer.Option(help="weights per condition, e.g. dark=1,normal=1,high=2")
     ] = None,
+    profile: ProfileOpt = None,
 ) -> None:
     """Render a labelled data set in the twin."""
     try:
@@ -62,6 +63,7 @@ def dataset_cmd(
             work_exact_lighting=exact_lighting,
             work_servo_prob=work_servo_prob,
             **({"lighting": _weights(lighting)} if lighting else {}),
+            **({"profile": profile} if profile else {}),
         )
         ds = render_dataset(cfg, log=_log)
         save_dataset(ds, out)

@@ -89,6 +89,7 @@ class DatasetConfig(BaseModel):
     work_servo_prob: float = Field(0.0, ge=0, le=1)  # of the working views: servo views
     work_servo_standoff: tuple[float, float] = (0.14, 0.30)  # m, TCP above the target's top
     work_servo_jitter: float = Field(0.03, ge=0)  # m, TCP offset from the target in x and y
+    profile: str = "realistic"  # the twin's error model profile (its camera noise)
 
 
 @dataclass
@@ -300,8 +301,16 @@ def render_dataset(cfg: DatasetConfig, log: object = None, progress: object = No
     unknown = set(cfg.lighting) - set(LIGHTING_CONDITIONS)
     if unknown:
         raise ConfigError(f"unknown lighting {sorted(unknown)}; known {LIGHTING_CONDITIONS}")
+    from mmpa.sim.error_model import ErrorModelConfig
+
+    try:
+        errors = ErrorModelConfig(profile=cfg.profile)  # type: ignore[arg-type]
+    except ValueError:
+        raise ConfigError(
+            f"unknown error model profile {cfg.profile!r}; use ideal, reference, realistic or harsh"
+        ) from None
     rng = np.random.default_rng(cfg.seed)
-    world = SimWorld(site="0")
+    world = SimWorld(site="0", errors=errors)
     cam_desc = world.true_robot.camera
     k0 = cam_desc.color
     s = cfg.width / k0.width
