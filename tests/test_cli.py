@@ -39,6 +39,7 @@ def test_snapshot_writes_pictures_cloud_and_summary(tmp_path):
     assert color.shape[:2] == (480, 640)
     assert color[..., :3].std() > 0.05  # a textured bench, not a blank frame
     summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["profile"] == "realistic"  # the default twin
     site = load_scene().site("1")
     assert np.hypot(*(np.array(summary["base_pose_6d"][:2]) - site.position[:2])) < 0.01
     assert summary["cloud_points"] > 100_000
@@ -94,3 +95,20 @@ def test_demo_main_job_end_to_end(tmp_path):
     assert task.name == "needle_site1" and len(task.cloud) > 100_000
     for name in ("color.png", "depth.png", "topdown.png", "cloud.ply", "config.yaml"):
         assert (tmp_path / name).stat().st_size > 0
+
+
+def test_profile_option_picks_the_error_model(tmp_path):
+    """--profile reaches the world and the summary; a --set on top still applies; an unknown
+    profile is a clear error."""
+    args = ["sim", "snapshot", "--site", "1", "--out", str(tmp_path), "--profile", "ideal"]
+    res = runner.invoke(app, [*args, "--set", "errors.camera.invalid_fraction=0.1"])
+    assert res.exit_code == 0, res.output
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["profile"] == "ideal"
+    cfg = yaml.safe_load((tmp_path / "config.yaml").read_text())
+    assert cfg["errors"]["profile"] == "ideal"
+    assert cfg["errors"]["camera"]["subpixel"] == 0.0  # the ideal camera ...
+    assert cfg["errors"]["camera"]["invalid_fraction"] == 0.1  # ... with the --set on top
+    assert 0.08 < summary["depth_invalid_fraction"] < 0.3
+    res = runner.invoke(app, ["sim", "snapshot", "--out", str(tmp_path), "--profile", "kind"])
+    assert res.exit_code == 2 and "profile" in res.output

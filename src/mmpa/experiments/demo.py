@@ -188,6 +188,7 @@ def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None)
             f"demo: site {cfg.start_site} -> {cfg.goal_site} ({cfg.localization} pose control)",
         )
         summary = {
+            "profile": cfg.errors.profile,
             "start_site": cfg.start_site,
             "goal_site": cfg.goal_site,
             "reached": bool(done),
@@ -301,6 +302,7 @@ def snapshot(cfg: DemoConfig, site: str, out: str | Path) -> dict:
         extra = _capture(world, out, cfg, q_view)
         _topdown(world, out, extra, None, None, f"snapshot at site {site}")
         summary = {
+            "profile": cfg.errors.profile,
             "site": site,
             "base_pose_6d": [round(float(x), 6) for x in T_to_vec6(world.truth.T_map_base_link())],
             "speed_bump": bool(world.speed_bump_enabled),

@@ -36,6 +36,7 @@ def teach_task(
         task = ts.taught.task
         store.save(task, overwrite=overwrite)
         return {
+            "profile": cfg.errors.profile,
             "task": task.name,
             "site": task.site,
             "store": str(store.path),
@@ -64,7 +65,7 @@ def run_task(
     with TwinSite(cfg, site, task=task) as ts:
         for _ in range(trial + 1):  # the trial-th parking draw of this seed
             ts.park()
-        out: dict = {"task": name, "site": site, "trial": trial}
+        out: dict = {"profile": cfg.errors.profile, "task": name, "site": site, "trial": trial}
         if tmma:
             out["tmma_tool_error_mm"] = round(ts.run_tmma() * 1e3, 2)
             ts.world.reset(site=site, pose2d=ts.parked_pose2d)
