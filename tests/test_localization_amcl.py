@@ -9,6 +9,7 @@ from mmpa.errors import InvalidInputError, UnknownNameError
 from mmpa.localization.amcl import AMCL, AMCLConfig, odometry_delta, sample_motion
 from mmpa.localization.enhanced import (
     EnhancedAMCL,
+    EnhancedConfig,
     gaussian_fit,
     log_gauss,
     orientation_weight,
@@ -399,7 +400,11 @@ def test_enhanced_learns_surveyed_landmark_errors_in_the_twin(world, grid) -> No
     RMS error, after removing the common translation that a map-consensus fix cannot see,
     drops by more than a third."""
     world.reset("1")
-    enh = make_localizer("enhanced", grid, laser_pose2d(world), np.random.default_rng(11))
+    # the localizer told the survey's accuracy of this twin (reference profile: 2 mm)
+    cfg = EnhancedConfig(landmark_map_sigma=0.002)
+    enh = make_localizer(
+        "enhanced", grid, laser_pose2d(world), np.random.default_rng(11), enhanced=cfg
+    )
     assert isinstance(enh, EnhancedAMCL)
     enh.initialize(world.truth.base_pose2d())
     _drive(world, [enh], 0.2, 0.3, 8.0)

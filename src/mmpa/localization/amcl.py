@@ -218,8 +218,11 @@ class AMCL:
         return np.column_stack([xy, th])
 
     # --- models ----------------------------------------------------------------------------
-    def _beams(self, scan: LaserScan, max_beams: int | None = None) -> tuple[Array, Array]:
-        """Valid subsampled beams (Nav2 ``max_beams`` stepping): ranges and angles."""
+    def _beams(
+        self, scan: LaserScan, max_beams: int | None = None, offset: int = 0
+    ) -> tuple[Array, Array]:
+        """Valid subsampled beams (Nav2 ``max_beams`` stepping, every ``step``-th beam from
+        beam ``offset mod step``): ranges and angles."""
         r = np.asarray(scan.ranges, float)
         c = self.cfg
         mb = c.max_beams if max_beams is None else max_beams
@@ -227,7 +230,7 @@ class AMCL:
         rmin = scan.range_min if c.laser_min_range < 0 else max(c.laser_min_range, scan.range_min)
         n = r.shape[0]
         step = max(1, (n - 1) // (mb - 1)) if mb > 1 else n
-        idx = np.arange(0, n, step)[:mb]
+        idx = np.arange(offset % step, n, step)[:mb]
         rr, aa = r[idx], scan.angles[idx]
         ok = np.isfinite(rr) & (rr >= rmin) & (rr < rmax)
         self._rmax = rmax

@@ -109,6 +109,14 @@ class ReflectorDetections:
             np.hypot(p[:, 0], p[:, 1]), np.arctan2(p[:, 1], p[:, 0]), p, self.beams, self.cut
         )
 
+    def range_corrected(self, bias: float) -> ReflectorDetections:
+        """The same detections with ``bias`` (m) taken off every range, each center moved
+        along its ray: ``r' = r - bias``, bearing unchanged. Only meaningful in the SENSOR
+        frame, where a range bias of the scanner is a bias of the range."""
+        r = self.ranges - bias
+        u = np.stack([np.cos(self.bearings), np.sin(self.bearings)], axis=1)
+        return ReflectorDetections(r, self.bearings.copy(), r[:, None] * u, self.beams, self.cut)
+
     @staticmethod
     def empty() -> ReflectorDetections:
         z = np.zeros(0)

@@ -32,6 +32,12 @@ class FollowerConfig(BaseModel):
     approach_radius: float = Field(0.15, gt=0)  # m: switch to the final approach
     max_reentries: int = Field(3, ge=0)  # align -> position phase switches allowed
     final_timeout: float = Field(25.0, gt=0)  # s in the final approach before giving up
+    # creeping along the heading cannot remove a lateral error: with the goal abeam (|ex| <=
+    # pos_tol) and within the creeping band to the side (|ey| <= 2 pos_tol), the position
+    # phase ends (the caller's settle check and corrections judge the pose). Without it a
+    # steady estimate 3-6 mm to the side makes the base creep back and forth until
+    # ``final_timeout`` (an estimate that jitters by a few mm gets out by chance)
+    abeam_done: bool = True
     final: GoToPoseConfig = GoToPoseConfig(
         k_v=0.6, k_w=1.5, max_v=0.08, max_w=0.3, turn_in_place=0.35, pos_tol=0.003, yaw_tol=0.003
     )
@@ -98,6 +104,8 @@ class PathFollower:
             self._reentries += 1
         if not self._align:
             if rho <= f.pos_tol or (abs(ey) <= f.pos_tol and abs(ex) <= f.pos_tol):
+                self._align = True
+            elif self.cfg.abeam_done and abs(ex) <= f.pos_tol and abs(ey) <= 2 * f.pos_tol:
                 self._align = True
             elif abs(ey) <= 2 * f.pos_tol or (rho < 0.01 and abs(ey) < 0.5 * abs(ex)):
                 v = float(np.clip(f.k_v * ex, -f.max_v, f.max_v))
