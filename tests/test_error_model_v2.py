@@ -219,3 +219,16 @@ def test_colour_session_gain_acts_on_the_captured_image():
     # the image is the truth times the session gain (up to rounding to uint8)
     np.testing.assert_allclose(ratio, gain[ok], atol=0.5 / 30 + 1e-6)
     assert abs(np.mean(gain) - 1.0) > 1e-3
+
+
+def test_a_top_level_profile_field_rebases_nothing():
+    """Only a section's ``profile`` re-bases that section; a top-level field of that name
+    (e.g. the perception data set's) leaves the other fields alone."""
+    from mmpa.config import apply_overrides
+
+    out = apply_overrides({"n": 3, "profile": "realistic"}, ["profile=ideal"])
+    assert out == {"n": 3, "profile": "ideal"}
+    out = apply_overrides(
+        {"errors": {"seed": 2, "camera": {"subpixel": 0.3}}}, ["errors.profile=harsh"]
+    )
+    assert out == {"errors": {"seed": 2, "profile": "harsh"}}

@@ -46,7 +46,7 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
             value = yaml.safe_load(raw)
         except yaml.YAMLError as e:
             raise ConfigError(f"override {item!r}: value is not valid YAML ({e})") from None
-        if parts[-1] == "profile":  # re-base the section on the profile (module docstring)
+        if parts[-1] == "profile" and len(parts) > 1:  # re-base the section (module doc)
             for k in [k for k in node if k not in ("seed", "profile")]:
                 del node[k]
         node[parts[-1]] = value
