@@ -326,6 +326,14 @@ class ErrorModelConfig(_Cfg):
         return cls.model_validate({"profile": profile, "seed": seed, **fields})
 
 
+def _pose_error(rng: np.random.Generator, trans_sigma: float, rot_sigma_deg: float) -> Array:
+    """A small pose error (4x4): ``N(0, trans_sigma)`` m per axis, then
+    ``N(0, rot_sigma_deg)`` per rotation axis, as ``vec6_to_T([tx, ty, tz, r, p, y])``."""
+    t = rng.normal(0.0, trans_sigma, 3)
+    r = rng.normal(0.0, np.deg2rad(rot_sigma_deg), 3)
+    return vec6_to_T(np.concatenate([t, r]))
+
+
 @dataclass(frozen=True)
 class ErrorModel:
     """A sampled robot instance: the TRUE robot next to the NOMINAL one, and noise settings.
@@ -357,15 +365,9 @@ class ErrorModel:
             alpha=tuple(alpha + rng.normal(0.0, ang, 6)),
             theta_offset=tuple(off + rng.normal(0.0, ang, 6)),
         )
-        dT = vec6_to_T(
-            np.concatenate(
-                [
-                    rng.normal(0.0, k.hand_eye_trans_sigma, 3),
-                    rng.normal(0.0, np.deg2rad(k.hand_eye_rot_sigma_deg), 3),
-                ]
-            )
+        T_true = nominal.camera.T_flange_camera @ _pose_error(
+            rng, k.hand_eye_trans_sigma, k.hand_eye_rot_sigma_deg
         )
-        T_true = nominal.camera.T_flange_camera @ dT
         true_camera = nominal.camera.model_copy(
             update={"T_flange_camera_vec": tuple(float(x) for x in T_to_vec6(T_true))}
         )
@@ -373,15 +375,9 @@ class ErrorModel:
         # the lidar mount from a stream of its own (the draws above stay as they were)
         li = config.lidar
         r_mount = np.random.default_rng([config.seed, zlib.crc32(b"lidar_mount")])
-        dL = vec6_to_T(
-            np.concatenate(
-                [
-                    r_mount.normal(0.0, li.mount_trans_sigma, 3),
-                    r_mount.normal(0.0, np.deg2rad(li.mount_rot_sigma_deg), 3),
-                ]
-            )
+        T_laser = nominal.lidar.T_base_link_laser @ _pose_error(
+            r_mount, li.mount_trans_sigma, li.mount_rot_sigma_deg
         )
-        T_laser = nominal.lidar.T_base_link_laser @ dL
         true_lidar = nominal.lidar.model_copy(
             update={"T_base_link_laser_vec": tuple(float(x) for x in T_to_vec6(T_laser))}
         )
