@@ -63,7 +63,23 @@ LABELS = {
 }
 
 
-class Config(BaseModel):
+class TwinLocalization(BaseModel):
+    """The fields the localization experiments share: the twin's error model (its seed, the
+    robot instance, follows the experiment's ``seed`` unless given) and the lidar mount
+    calibration of the methods in ``calibrated_methods``."""
+
+    errors: ErrorModelConfig = ErrorModelConfig()
+    # improvement: lidar mount calibrated by a turn on the spot, for these methods
+    calibrate_mount: bool = True
+    calibrated_methods: list[str] = Field(default_factory=lambda: ["enhanced"])
+    mount_calibration: MountCalibrationConfig = MountCalibrationConfig()
+
+    @model_validator(mode="after")
+    def _robot_seed(self) -> TwinLocalization:
+        return errors_follow_seed(self)
+
+
+class Config(TwinLocalization):
     model_config = ConfigDict(extra="forbid", coerce_numbers_to_str=True)
 
     seed: int = 0
@@ -85,15 +101,6 @@ class Config(BaseModel):
     kidnap_site: str = "2"
     kidnap_duration: float = Field(30.0, gt=0)
     kidnap_amcl: AMCLConfig = AMCLConfig(recovery_alpha_slow=0.001, recovery_alpha_fast=0.1)
-    errors: ErrorModelConfig = ErrorModelConfig()  # the twin (its seed: ``seed`` if not given)
-    # improvement: lidar mount calibrated by a turn on the spot, for these methods
-    calibrate_mount: bool = True
-    calibrated_methods: list[str] = Field(default_factory=lambda: ["enhanced"])
-    mount_calibration: MountCalibrationConfig = MountCalibrationConfig()
-
-    @model_validator(mode="after")
-    def _robot_seed(self) -> Config:
-        return errors_follow_seed(self)
 
 
 def twin_mount_calibration(

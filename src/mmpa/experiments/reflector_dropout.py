@@ -33,18 +33,16 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field
 
-from mmpa.experiments.localization import errors_follow_seed, method_mounts
+from mmpa.experiments.localization import TwinLocalization, method_mounts
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.geometry import wrap_angle
 from mmpa.localization.localizer import METHODS, _observer, make_localizer
 from mmpa.localization.trilateration import trilaterate
 from mmpa.navigation.follower import FollowerConfig, PathFollower
 from mmpa.navigation.mission import laser_pose2d, twin_map, twin_nav_map
-from mmpa.navigation.mount_calibration import MountCalibrationConfig
 from mmpa.navigation.planner import CostMap, plan_path
-from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.operator import rough_initial_pose
 from mmpa.sim.world import SimWorld
 
@@ -59,7 +57,7 @@ LABELS = {
 }
 
 
-class Config(BaseModel):
+class Config(TwinLocalization):
     model_config = ConfigDict(extra="forbid")
 
     seed: int = 0
@@ -87,15 +85,6 @@ class Config(BaseModel):
     subsets_per_count: int = Field(4, ge=1)
     settle_scans: int = Field(15, ge=1)
     site: str = "1"
-    errors: ErrorModelConfig = ErrorModelConfig()  # the twin (its seed: ``seed`` if not given)
-    # improvement: lidar mount calibrated by a turn on the spot, for these methods
-    calibrate_mount: bool = True
-    calibrated_methods: list[str] = Field(default_factory=lambda: ["enhanced"])
-    mount_calibration: MountCalibrationConfig = MountCalibrationConfig()
-
-    @model_validator(mode="after")
-    def _robot_seed(self) -> Config:
-        return errors_follow_seed(self)
 
 
 def _occluders(
