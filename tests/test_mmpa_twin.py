@@ -210,3 +210,33 @@ def test_site2_prime_parking_tilts_like_table2(tmp_path):
     assert abs(tz.mean()) < 0.015 and tz.std() < 0.02
     assert abs(pitch.mean()) < 2.5 and np.abs(pitch).max() < 8.0
     assert np.abs(pitch).max() > 0.3  # the bump does tilt the base
+
+
+class _ScaledDepthCamera:
+    """A camera with a depth calibration fault: every depth times ``scale``."""
+
+    def __init__(self, camera, scale: float) -> None:
+        self._camera, self._scale = camera, scale
+
+    def capture(self):
+        f = self._camera.capture()
+        return dataclasses.replace(f, depth=f.depth * self._scale)
+
+    def __getattr__(self, name):
+        return getattr(self._camera, name)
+
+
+def test_depth_scale_fault_is_refused_and_the_arm_stays(site1):
+    """A 3 % depth-scale fault (the audit's case: ok with a 14 mm wrong dT_B) is seen by the
+    projective refinement's scale estimate and refused; the arm does not move after."""
+    from mmpa.missions.mmpa import automate
+
+    w = site1.world
+    site1.park()
+    cam = _ScaledDepthCamera(w.camera, 1.03)
+    res = automate(site1.taught.task, arm=w.arm, camera=cam, gripper=w.gripper, robot=w.nominal)
+    assert not res.ok and not res.executed and res.joint_path is None
+    assert "depth calibration fault" in res.reason, res.reason
+    pr = res.ipe.iterations[-1].projective
+    assert pr.scale == pytest.approx(1.03, abs=0.01)  # taught depth scaled onto the faulty
+    np.testing.assert_allclose(w.arm.joint_positions(), res.ipe.iterations[-1].q, atol=1e-6)

@@ -11,7 +11,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError, UnknownNameError, UnreachableError
+from mmpa.errors import InvalidInputError, JointLimitError, UnknownNameError
 from mmpa.geometry import T_to_vec6, inv
 from mmpa.sim.error_model import ErrorModelConfig, KinematicsError
 from mmpa.sim.scene import SpeedBump, load_scene
@@ -300,7 +300,7 @@ def test_joint_outside_limits_raises_and_the_arm_stays(world):
     q0 = world.arm.joint_positions()
     bad = np.array(world.nominal.arm.home)
     bad[2] = 3.5  # joint 3 limit is +-pi
-    with pytest.raises(UnreachableError, match="joint 3"):
+    with pytest.raises(JointLimitError, match="joint 3"):
         world.arm.move_joints(bad)
     world.step(0.3)
     assert world.arm.joint_positions() == pytest.approx(q0, abs=1e-5)

@@ -56,3 +56,8 @@ class UnsupportedVersionError(MMPAError):
 
 class TaskExistsError(MMPAError, ValueError):
     """Saving or importing a task whose name is taken, without ``overwrite``."""
+
+
+class JointLimitError(MMPAError, ValueError):
+    """A joint command or path breaks the arm's position, velocity or acceleration limits;
+    refused before anything moves."""

@@ -400,11 +400,15 @@ class TwinSite:
 
     def run_tmma(self) -> float:
         w = self.world
-        rec = replay_tmma(
-            self.taught.task, arm=w.arm, gripper=w.gripper, record_hz=self.taught.task.path.rate_hz
+        path, rec = replay_tmma(
+            self.taught.task,
+            arm=w.arm,
+            gripper=w.gripper,
+            arm_model=w.nominal.arm,
+            record_hz=self.taught.task.path.rate_hz,
         )
         assert rec is not None
-        t_key = self.taught.task.path.t[self.taught.key_index]
+        t_key = path.t[self.taught.key_index]
         return self.key_error(rec[1], rec[0], t_key)
 
 

@@ -270,7 +270,7 @@ class IPE:
         for k in range(1, cfg.beta + 1):
             if progress:
                 progress(f"IPE iteration {k}", (k - 1) / cfg.beta)
-            if np.any(q_next < lo) or np.any(q_next > hi):
+            if not np.all((q_next >= lo) & (q_next <= hi)):  # False for a NaN too
                 result.reason = f"iteration {k}: the sampling pose is outside the joint limits"
                 return result
             t1 = time.perf_counter()
@@ -325,6 +325,23 @@ class IPE:
                 k, q, T_Bk_Ck, reg, dT_B, pose_difference(dT_C), t2 - t1, t3 - t2, t4 - t3, pr
             )
             result.iterations.append(it)
+            if (
+                pr is not None
+                and cfg.projective is not None
+                and not pr.ok
+                and pr.n_inliers >= cfg.projective.min_inliers
+                and abs(pr.scale - 1.0) > cfg.projective.max_scale_error
+            ):
+                # the refinement saw the scene at a different depth scale than at teaching:
+                # a depth calibration fault (a 3 % scale error shifts dT_B by ~1 cm), not a
+                # pose offset; no estimate from this camera is trusted
+                result.reason = (
+                    f"iteration {k}: depth scale {pr.scale:.4f} against the teaching capture "
+                    f"(accepted 1 +- {cfg.projective.max_scale_error}): a depth calibration "
+                    "fault of the camera; no estimate"
+                )
+                result.dT_B = None
+                return result
             if not reg.ok or dT_B is None:
                 if result.dT_B is None and not retreated and cfg.retreat > 0 and k < cfg.beta:
                     # beyond the paper: no estimate yet (little overlap, e.g. a tilted base):

@@ -20,12 +20,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.errors import InvalidInputError, MMPAError, UnreachableError
+from mmpa.errors import InvalidInputError, JointLimitError, MMPAError, UnreachableError
 from mmpa.geometry import Array, T_to_se2, inv
 from mmpa.ipe import transform_path
 from mmpa.ipe.loop import IPE, IPEConfig, IPEResult, capture_cloud
 from mmpa.planning import JointPath, PathPlanConfig, plan_joint_path, retime
-from mmpa.robot.description import RobotDescription
+from mmpa.robot.description import ArmDescription, RobotDescription
 from mmpa.robot.interfaces import Arm, Camera, Gripper
 from mmpa.robot.kinematics import fk
 from mmpa.tasks import Task, ToolPath
@@ -204,7 +204,7 @@ def automate(
             )
             out.joint_path = retime(task.path.t, q_path, robot.arm, cfg.plan)
             break
-        except UnreachableError as e:
+        except (UnreachableError, JointLimitError) as e:
             out.reason = f"path planning failed: {e}"
             if repark is None or len(out.reparks) >= cfg.max_reparks:
                 return out
@@ -270,15 +270,23 @@ def execute_joint_path(
 
 
 def replay_tmma(
-    task: Task, *, arm: Arm, gripper: Gripper | None, record_hz: float | None = None
-) -> tuple[Array, Array] | None:
+    task: Task,
+    *,
+    arm: Arm,
+    gripper: Gripper | None,
+    arm_model: ArmDescription,
+    record_hz: float | None = None,
+) -> tuple[JointPath, tuple[Array, Array] | None]:
     """TMMA baseline: replay the taught joint sequence without correction (the sampling pose,
-    then the recorded joint path), as Nair et al. 2019 replay a recorded arm motion."""
+    then the recorded joint path), as Nair et al. 2019 replay a recorded arm motion.
+
+    The recorded path is retimed to the full joint limits of ``arm_model`` first (a taught
+    path recorded from the arm itself needs no stretch: ``time_scale`` 1; an edited or
+    corrupted one is slowed down, never played past the limits). Returns the executed
+    ``JointPath`` and the recording (``None`` without ``record_hz``).
+    """
+    full = PathPlanConfig(velocity_scale=1.0, acceleration_scale=1.0)
+    path = retime(task.path.t, task.path.q, arm_model, full)
     arm.move_joints(task.q_sample)
-    return execute_joint_path(
-        arm,
-        gripper,
-        JointPath(task.path.t - task.path.t[0], task.path.q),
-        task.path.gripper,
-        record_hz=record_hz,
-    )
+    rec = execute_joint_path(arm, gripper, path, task.path.gripper, record_hz=record_hz)
+    return path, rec

@@ -20,6 +20,7 @@ from mmpa.errors import InvalidInputError, UnreachableError
 from mmpa.geometry import Array
 from mmpa.robot.description import ArmDescription
 from mmpa.robot.kinematics import fk, ik_nearest
+from mmpa.robot.limits import JointLimits, check_positions, path_accelerations, path_velocities
 
 __all__ = ["JointPath", "PathPlanConfig", "plan_joint_path", "retime"]
 
@@ -94,20 +95,29 @@ def retime(t: Array, q: Array, arm: ArmDescription, cfg: PathPlanConfig | None =
     ``velocity_scale * qd_max`` and ``acceleration_scale * qdd_max``.
 
     With ``q(t) = c(t / s)``: ``q' = c' / s`` and ``q'' = c'' / s^2``, so the smallest
-    admissible ``s`` is ``max(1, max|c'|/v, sqrt(max|c''|/a))`` (sampled densely on the spline).
+    admissible ``s`` is ``max(1, max|c'|/v, sqrt(max|c''|/a))`` (sampled densely on the spline),
+    taken over both the spline and the linear interpolation the arm executes (segment
+    velocities and their finite-difference accelerations, :mod:`mmpa.robot.limits`).
+
+    Raises :class:`JointLimitError` when a sample is outside the position limits (no timing
+    can fix that) and :class:`InvalidInputError` on NaN or non-increasing time stamps.
     """
     cfg = cfg or PathPlanConfig()
     t = np.asarray(t, dtype=float)
     q = np.asarray(q, dtype=float)
     if t.ndim != 1 or q.shape != (len(t), 6) or len(t) < 2:
         raise InvalidInputError(f"need t (N,) and q (N, 6) with N >= 2, got {t.shape}, {q.shape}")
-    if np.any(np.diff(t) <= 0):
-        raise InvalidInputError("path time stamps must increase strictly")
+    if not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
+        raise InvalidInputError("path time stamps must be finite and increase strictly")
+    check_positions(q, JointLimits.from_description(arm), "joint path")
     t = t - t[0]
     spline = CubicSpline(t, q, axis=0, bc_type="clamped")
     ts = np.linspace(0.0, t[-1], max(10 * len(t), 200))
     v = np.abs(spline(ts, 1)).max(axis=0)
     a = np.abs(spline(ts, 2)).max(axis=0)
+    v = np.maximum(v, np.abs(path_velocities(t, q)).max(axis=0))
+    if len(t) > 2:
+        a = np.maximum(a, np.abs(path_accelerations(t, q)).max(axis=0))
     vmax = np.asarray(arm.qd_max) * cfg.velocity_scale
     amax = np.asarray(arm.qdd_max) * cfg.acceleration_scale
     s = max(1.0, float(np.max(v / vmax)), float(np.sqrt(np.max(a / amax))))

@@ -214,7 +214,17 @@ class Base(Protocol):
 
 @runtime_checkable
 class Arm(Protocol):
-    """A 6-DOF position-controlled arm."""
+    """A 6-DOF position-controlled arm.
+
+    Limits contract (every backend): no motion may exceed the arm's joint position, velocity
+    or acceleration limits (:class:`mmpa.robot.limits.JointLimits`). A target or path sample
+    outside the position limits, a NaN, or a path whose velocity or acceleration breaks the
+    limits is refused with :class:`~mmpa.errors.JointLimitError` /
+    :class:`~mmpa.errors.InvalidInputError` before anything moves (callers slow a path down
+    with :func:`mmpa.planning.retime`); a path whose start is away from the arm gets a
+    limit-respecting approach move, never a jump; streaming set-points (``command``, where a
+    backend has it) are velocity- and acceleration-limited by the backend.
+    """
 
     def joint_positions(self) -> Array:
         """Measured joint angles (rad), shape (6,)."""

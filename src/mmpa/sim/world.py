@@ -12,6 +12,7 @@ Units: m, rad, s. Every random draw comes from the error model's seeded streams.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -19,10 +20,11 @@ import mujoco
 import numpy as np
 from ruckig import InputParameter, Result, Ruckig, Trajectory
 
-from mmpa.errors import InvalidInputError, SimulationError, UnknownNameError, UnreachableError
+from mmpa.errors import InvalidInputError, SimulationError, UnknownNameError
 from mmpa.geometry import Array, T_to_se2, make_T, rpy_to_R
 from mmpa.robot.description import RobotDescription, default_robot
 from mmpa.robot.interfaces import Odometry
+from mmpa.robot.limits import JointLimits, check_path, check_positions, limit_setpoint
 from mmpa.sim.error_model import ErrorModel, ErrorModelConfig
 from mmpa.sim.lidar_noise import SmoothWarp
 from mmpa.sim.mjcf import MOUNT_JOINTS, build_model
@@ -131,6 +133,14 @@ class SimWorld:
         #: robot instance): a world point ``q`` appears in the map at ``q + map_warp(q)``
         self.map_warp = SmoothWarp.sample(rng("map_warp"), li.map_warp_sigma, li.map_warp_length)
         self._motion: _ArmMotion | None = None
+        #: streaming set-point (Arm.command): the last command, when it came (sim s), the
+        #: command velocity (rad/s) held for one command period, and the limited
+        #: set-point's velocity
+        self._stream: Array | None = None
+        self._stream_t = 0.0
+        self._stream_vff = np.zeros(6)
+        self._stream_hold = 0.0
+        self._stream_v = np.zeros(6)
         self._steps = 0
         self.base = SimBase(self)
         self.arm = SimArm(self)
@@ -272,7 +282,7 @@ class SimWorld:
         self.data.qpos[self._arm_qadr] = q
         self.data.qvel[self._arm_dadr] = 0.0
         self.data.ctrl[self._arm_act] = q
-        self._motion = None
+        self._motion = self._stream = None
         self._rest_mount()
         mujoco.mj_forward(self.model, self.data)
 
@@ -372,7 +382,7 @@ class SimWorld:
         d.qpos[self._arm_qadr] = q
         d.ctrl[self._arm_act] = q
         d.ctrl[self._grip_act] = 0.0
-        self._motion = None
+        self._motion = self._stream = None
         self._rest_mount()
         mujoco.mj_forward(self.model, d)
         self._odometry = SimOdometry(
@@ -482,12 +492,26 @@ class SimWorld:
             raise InvalidInputError(f"duration must be a finite non-negative time, got {duration}")
         n = round(duration / self.model.opt.timestep)
         m, d = self.model, self.data
+        dt = float(m.opt.timestep)
         for _ in range(n):
             if self._motion is not None:
                 t = d.time - self._motion.t0
                 d.ctrl[self._arm_act] = self._motion.sample(min(t, self._motion.duration))  # type: ignore[operator]
                 if t >= self._motion.duration:
                     self._motion = None
+            elif self._stream is not None:
+                # first-order hold: the target moves on at the command velocity for up to
+                # one command period after the command (a steady stream is a ramp)
+                ahead = min(d.time + dt - self._stream_t, self._stream_hold)
+                moving = d.time + dt - self._stream_t < self._stream_hold
+                d.ctrl[self._arm_act], self._stream_v = limit_setpoint(
+                    d.ctrl[self._arm_act],
+                    self._stream_v,
+                    self._stream + self._stream_vff * ahead,
+                    dt,
+                    self.arm.stream_limits,
+                    self._stream_vff if moving else 0.0,
+                )
             mujoco.mj_step(m, d)
             self._steps += 1
             if self._steps % _CONTROL_EVERY == 0:
@@ -541,7 +565,17 @@ class SimBase:
 
 
 class SimArm:
-    """Position-controlled arm following jerk-limited (ruckig) joint trajectories."""
+    """Position-controlled arm following jerk-limited (ruckig) joint trajectories.
+
+    Every motion respects the joint limits (``limits``): ``move_joints`` plans within the
+    velocity, acceleration and jerk limits; ``follow`` refuses a path that breaks the position,
+    velocity or acceleration limits before anything moves, and first approaches the path's
+    start along a jerk-limited move when the arm is more than ``approach_tolerance`` rad away;
+    ``command`` streams through a velocity-limited set-point (``stream_limits``).
+    """
+
+    #: rad: a path starting farther than this from the set-point gets an approach move first
+    approach_tolerance = 1e-3
 
     def __init__(self, world: SimWorld) -> None:
         self._w = world
@@ -550,6 +584,14 @@ class SimArm:
         self._vmax, self._amax, self._jmax = (
             np.array(x) for x in (a.qd_max, a.qdd_max, a.qddd_max)
         )
+        #: the limits every motion of this arm is checked against (mmpa.robot.limits)
+        self.limits = JointLimits.from_description(a)
+        #: the limits of streamed set-points (``command``): the joint velocity limits; the
+        #: stream's acceleration is bounded by the joint torques (the actuators' force
+        #: ranges), as on a UR, whose acceleration limits are planning values (MoveIt's
+        #: joint_limits.yaml), not controller limits. ``self.limits`` limits it to
+        #: ``qdd_max`` too (the grasp controller then lags its set-points: see the note)
+        self.stream_limits = dataclasses.replace(self.limits, qdd_max=np.full(6, np.inf))
 
     def joint_positions(self) -> Array:
         """Encoder readings (rad), shape (6,)."""
@@ -560,16 +602,9 @@ class SimArm:
 
     def _check(self, q: Array) -> Array:
         q = np.asarray(q, float)
-        if q.shape != (6,) or not np.all(np.isfinite(q)):
-            raise InvalidInputError(f"joint target must be 6 finite angles, got {q}")
-        bad = (q < self.q_min) | (q > self.q_max)
-        if np.any(bad):
-            j = int(np.argmax(bad))
-            raise UnreachableError(
-                f"joint {j + 1} target {q[j]:.4f} rad is outside its limits "
-                f"[{self.q_min[j]:.4f}, {self.q_max[j]:.4f}]"
-            )
-        return q
+        if q.shape != (6,):
+            raise InvalidInputError(f"joint target must be 6 finite angles, got shape {q.shape}")
+        return check_positions(q, self.limits)
 
     def plan(self, q_target: Array, min_duration: float = 0.0) -> tuple[float, object]:
         """Jerk-limited time-optimal trajectory from the current state to ``q_target``.
@@ -611,16 +646,30 @@ class SimArm:
             return np.asarray(sample(t)) + noise * min(t / T, 1.0) if T > 0 else q_final  # type: ignore[operator]
 
         w._motion = _ArmMotion(float(w.data.time), T, sample_noisy)
+        w._stream = None
         w.step(T + settle)
 
     def command(self, q: Array) -> None:
-        """Servo set-point: the joint position controllers track ``q`` (rad, (6,)) from now
-        on (a streaming command, as URScript ``servoj``); cancels any trajectory. Targets
-        outside the joint limits are refused. Step the world to let the arm move."""
+        """Servo set-point: the joints go to ``q`` (rad, (6,)) from now on (a streaming
+        command, as URScript ``servoj``); cancels any trajectory. Targets outside the joint
+        position limits are refused; the set-point moves toward the target within
+        ``stream_limits`` (:func:`mmpa.robot.limits.limit_setpoint`, run every physics step),
+        so no stream of commands can drive a joint past its velocity limit. Step the world
+        to let the arm move."""
         q = self._check(q)
         w = self._w
+        now = float(w.data.time)
+        vmax = self.limits.qd_max
+        if w._stream is None or now <= w._stream_t:  # a new stream (or two commands at once)
+            if w._stream is None:
+                w._stream_v = np.zeros(6)
+            w._stream_vff, w._stream_hold = np.zeros(6), 0.0
+        else:
+            period = now - w._stream_t
+            w._stream_vff = np.clip((q - w._stream) / period, -vmax, vmax)
+            w._stream_hold = period
         w._motion = None
-        w.data.ctrl[w._arm_act] = q
+        w._stream, w._stream_t = q.copy(), now
 
     def follow(
         self, times: Array, q_path: Array, record_hz: float | None = None
@@ -636,11 +685,13 @@ class SimArm:
             raise InvalidInputError(
                 f"need times (T,) and q_path (T, 6), got {times.shape}, {q_path.shape}"
             )
-        if np.any(np.diff(times) <= 0):
-            raise InvalidInputError("path times must increase strictly")
-        for q in q_path:
-            self._check(q)
+        if record_hz is not None and not (np.isfinite(record_hz) and record_hz > 0):
+            raise InvalidInputError(f"record_hz must be a positive rate, got {record_hz}")
+        check_path(times, q_path, self.limits)  # positions, velocities, accelerations
         w = self._w
+        w._stream = None
+        if np.max(np.abs(q_path[0] - w.data.ctrl[w._arm_act])) > self.approach_tolerance:
+            self.move_joints(q_path[0], settle=0.0)  # a jerk-limited approach, not a jump
         t_rel = times - times[0]
 
         def sample(t: float) -> Array:
@@ -650,8 +701,6 @@ class SimArm:
         if record_hz is None:
             w.step(float(t_rel[-1]) + 0.2)
             return None
-        if not (np.isfinite(record_hz) and record_hz > 0):
-            raise InvalidInputError(f"record_hz must be a positive rate, got {record_hz}")
         dt = 1.0 / record_hz
         n = int(np.floor(t_rel[-1] * record_hz + 1e-9)) + 1
         t_rec, q_rec = [0.0], [self.joint_positions()]

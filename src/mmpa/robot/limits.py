@@ -1,0 +1,163 @@
+"""Joint limits: the one place every motion is checked against position, velocity and
+acceleration limits before anything moves.
+
+A timed joint path ``q`` (N, 6) at ``t`` (N,) s is executed by linear interpolation between
+samples (what ``Arm.follow`` and a UR's ``servoJ`` stream do). Its velocity on segment ``k``
+is ``v_k = (q_{k+1} - q_k) / (t_{k+1} - t_k)``, and its acceleration at sample ``k`` the
+finite difference ``a_k = (v_k - v_{k-1}) / ((t_{k+1} - t_{k-1}) / 2)`` (exact for a path
+sampled from a constant-acceleration motion). A streaming set-point (``Arm.command``) is
+shaped by :func:`limit_setpoint`, a per-joint second-order limiter: the set-point moves
+toward its target no faster than ``qd_max`` and changes speed no faster than ``qdd_max``,
+braking early enough to stop at the target.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mmpa.errors import InvalidInputError, JointLimitError
+from mmpa.geometry import Array
+from mmpa.robot.description import ArmDescription
+
+__all__ = [
+    "JointLimits",
+    "check_path",
+    "check_positions",
+    "limit_setpoint",
+    "path_accelerations",
+    "path_velocities",
+]
+
+
+@dataclass(frozen=True)
+class JointLimits:
+    """Limits of a 6-joint arm, each shape (6,): ``q_min``/``q_max`` rad, ``qd_max`` rad/s,
+    ``qdd_max`` rad/s^2. ``tolerance`` is the relative slack allowed on velocity and
+    acceleration (rounding of time stamps)."""
+
+    q_min: Array
+    q_max: Array
+    qd_max: Array
+    qdd_max: Array
+    tolerance: float = 1e-6
+
+    @classmethod
+    def from_description(cls, arm: ArmDescription) -> JointLimits:
+        lo, hi = arm.q_limits
+        return cls(lo, hi, np.asarray(arm.qd_max, float), np.asarray(arm.qdd_max, float))
+
+
+def check_positions(q: Array, limits: JointLimits, what: str = "joint target") -> Array:
+    """Return ``q`` (6,) or (N, 6) as floats; raise if any value is not finite
+    (:class:`InvalidInputError`) or outside ``[q_min, q_max]`` (:class:`JointLimitError`)."""
+    q = np.asarray(q, dtype=float)
+    if q.shape[-1:] != (6,) or q.ndim not in (1, 2):
+        raise InvalidInputError(f"{what} must have shape (6,) or (N, 6), got {q.shape}")
+    if not np.all(np.isfinite(q)):
+        raise InvalidInputError(f"{what} holds a NaN or infinite angle: {q[~np.isfinite(q)][:3]}")
+    bad = (q < limits.q_min) | (q > limits.q_max)
+    if np.any(bad):
+        idx = np.argwhere(np.atleast_2d(bad))[0]
+        k, j = int(idx[0]), int(idx[1])
+        val = float(np.atleast_2d(q)[k, j])
+        at = f" at sample {k}" if q.ndim == 2 else ""
+        raise JointLimitError(
+            f"{what}{at}: joint {j + 1} = {val:.4f} rad is outside its limits "
+            f"[{limits.q_min[j]:.4f}, {limits.q_max[j]:.4f}]"
+        )
+    return q
+
+
+def path_velocities(t: Array, q: Array) -> Array:
+    """Segment velocities ``(q_{k+1} - q_k) / (t_{k+1} - t_k)``, shape (N-1, 6) rad/s."""
+    return np.diff(q, axis=0) / np.diff(t)[:, None]
+
+
+def path_accelerations(t: Array, q: Array) -> Array:
+    """Accelerations at the inner samples, shape (N-2, 6) rad/s^2 (module docstring)."""
+    v = path_velocities(t, q)
+    return np.diff(v, axis=0) / (0.5 * (t[2:] - t[:-2]))[:, None]
+
+
+def check_path(t: Array, q: Array, limits: JointLimits, what: str = "joint path") -> None:
+    """Refuse a timed path that is not finite, not strictly increasing in time, or that
+    breaks the position, velocity or acceleration limits; the message names the sample,
+    the joint, the value and the limit, and how to fix it (``mmpa.planning.retime``).
+
+    ``t`` (N,) s, ``q`` (N, 6) rad. Raises :class:`InvalidInputError` or
+    :class:`JointLimitError`.
+    """
+    t = np.asarray(t, dtype=float)
+    q = np.asarray(q, dtype=float)
+    if t.ndim != 1 or q.shape != (len(t), 6) or len(t) < 1:
+        raise InvalidInputError(f"{what}: need t (N,) and q (N, 6), got {t.shape}, {q.shape}")
+    if not np.all(np.isfinite(t)):
+        raise InvalidInputError(f"{what}: a time stamp is NaN or infinite")
+    if np.any(np.diff(t) <= 0):
+        raise InvalidInputError(f"{what}: time stamps must increase strictly")
+    check_positions(q, limits, what)
+    slack = 1.0 + limits.tolerance
+    for name, values, lim, unit in (
+        ("velocity", path_velocities(t, q) if len(t) > 1 else None, limits.qd_max, "rad/s"),
+        (
+            "acceleration",
+            path_accelerations(t, q) if len(t) > 2 else None,
+            limits.qdd_max,
+            "rad/s^2",
+        ),
+    ):
+        if values is None:
+            continue
+        ratio = np.abs(values) / lim
+        if np.any(ratio > slack):
+            k, j = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+            raise JointLimitError(
+                f"{what}: joint {j + 1} {name} {values[k, j]:.3f} {unit} near sample {k + 1} "
+                f"is {ratio[k, j]:.2f}x its limit {lim[j]:.3f} {unit}; slow the path down "
+                "(mmpa.planning.retime) before sending it"
+            )
+
+
+def limit_setpoint(
+    q: Array,
+    v: Array,
+    target: Array,
+    dt: float,
+    limits: JointLimits,
+    v_target: Array | float = 0.0,
+) -> tuple[Array, Array]:
+    """One control period of the streaming limiter: from set-point ``q`` moving at ``v``
+    (both (6,)) toward ``target`` (6,), the target's position at the end of this period,
+    moving at ``v_target`` (rad/s, (6,) or 0), return the next ``(q, v)`` after ``dt`` s.
+
+    Per joint, with ``e = target - q``: the desired velocity is ``v_target`` plus the speed
+    from which braking by ``qdd_max dt`` per period closes ``e`` exactly (discrete braking:
+    ``a dt (sqrt(1/4 + 2 |e| / (a dt^2)) - 1/2)``), at most ``qd_max`` in all; the velocity
+    changes by at most ``qdd_max dt`` per period. The step that reaches the target lands on
+    it exactly when that keeps within the limits (a held target is reached and held; a
+    steady ramp is tracked without lag); a target moved inside the braking distance is
+    overshot and returned to. With ``qdd_max = inf`` it is a pure velocity limiter.
+    """
+    e = target - q
+    a, vmax = limits.qdd_max, limits.qd_max
+    adt = a * dt
+    v_t = np.broadcast_to(np.asarray(v_target, dtype=float), e.shape)
+    with np.errstate(invalid="ignore", divide="ignore"):  # qdd_max = inf: no braking needed
+        v_brake = np.where(
+            np.isinf(a), np.abs(e) / dt, adt * (np.sqrt(0.25 + 2.0 * np.abs(e) / (adt * dt)) - 0.5)
+        )
+    v_goal = np.clip(v_t + np.sign(e) * v_brake, -vmax, vmax)
+    v_new = v + np.clip(v_goal - v, -adt, adt)
+    # land when the target is reachable this period at a velocity reachable from v and
+    # close enough to the target's own for the next period
+    v_land = e / dt
+    land = (
+        (np.abs(v_land) <= vmax)
+        & (np.abs(v_land - v) <= adt * (1 + 1e-9))
+        & (np.abs(v_land - v_t) <= adt * (1 + 1e-9))
+    )
+    q_new = np.where(land, target, q + v_new * dt)
+    v_new = np.where(land, v_land, v_new)
+    return q_new, v_new

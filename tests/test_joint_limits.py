@@ -1,0 +1,216 @@
+"""Joint limits enforced for every motion: the checks against closed forms, the streaming
+limiter against its bounds, and the twin's arm refusing or limiting before anything moves."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mmpa.errors import InvalidInputError, JointLimitError
+from mmpa.planning import retime
+from mmpa.robot.description import ArmDescription
+from mmpa.robot.limits import (
+    JointLimits,
+    check_path,
+    limit_setpoint,
+    path_accelerations,
+    path_velocities,
+)
+
+ARM = ArmDescription()
+LIM = JointLimits.from_description(ARM)
+HOME = np.array(ARM.home)
+
+
+def test_path_derivatives_closed_form() -> None:
+    # q(t) = q0 + v0 t + a t^2 / 2 sampled at uneven times: exact finite differences
+    rng = np.random.default_rng(0)
+    t = np.cumsum(rng.uniform(0.005, 0.02, 40))
+    v0, a = rng.normal(0, 0.3, 6), rng.normal(0, 1.0, 6)
+    q = HOME + np.outer(t, v0) + 0.5 * np.outer(t**2, a)
+    v = path_velocities(t, q)
+    mid = 0.5 * (t[1:] + t[:-1])
+    np.testing.assert_allclose(v, v0 + np.outer(mid, a), atol=1e-12)
+    # the finite difference of a quadratic is exact only for even spacing: check its mean
+    acc = path_accelerations(t, q)
+    assert acc.shape == (38, 6)
+    np.testing.assert_allclose(np.median(acc, axis=0), a, rtol=0.05)
+    te = np.arange(40) * 0.01
+    qe = HOME + np.outer(te, v0) + 0.5 * np.outer(te**2, a)
+    np.testing.assert_allclose(path_accelerations(te, qe), np.tile(a, (38, 1)), atol=1e-9)
+
+
+def test_check_path_refuses_each_limit_naming_it() -> None:
+    t = np.arange(10) * 0.02
+    q = np.tile(HOME, (10, 1))
+    check_path(t, q, LIM)  # standing still is fine
+    jump = q.copy()
+    jump[5:, 0] += 1.5  # 1.5 rad in 20 ms: 75 rad/s
+    with pytest.raises(JointLimitError, match=r"joint 1 velocity 75\.000 rad/s .* 23\.87x"):
+        check_path(t, jump, LIM)
+    out = q.copy()
+    out[3, 2] = 5.0
+    with pytest.raises(JointLimitError, match=r"sample 3: joint 3 = 5\.0000 rad is outside"):
+        check_path(t, out, LIM)
+    # velocity within limits but acceleration not: 0 -> 0.9 qd_max in one 20 ms step
+    acc = q.copy()
+    acc[5:, 1] += 0.9 * LIM.qd_max[1] * (t[5:] - t[4])
+    with pytest.raises(JointLimitError, match="joint 2 acceleration"):
+        check_path(t, acc, LIM)
+    bad_t = t.copy()
+    bad_t[4] = np.nan
+    with pytest.raises(InvalidInputError, match="NaN"):
+        check_path(bad_t, q, LIM)
+    nan_q = q.copy()
+    nan_q[2, 4] = np.nan
+    with pytest.raises(InvalidInputError, match="NaN"):
+        check_path(t, nan_q, LIM)
+
+
+def test_retime_refuses_positions_and_fixes_speed() -> None:
+    t = np.arange(10) * 0.02
+    q = np.tile(HOME, (10, 1))
+    q[4, 2] = 5.0
+    with pytest.raises(JointLimitError, match="joint 3"):
+        retime(t, q, ARM)
+    q = np.tile(HOME, (10, 1))
+    q[5:, 0] += 1.5
+    path = retime(t, q, ARM)
+    assert path.time_scale > 20
+    check_path(path.t, path.q, LIM)  # the retimed path passes the executed-path check
+    with pytest.raises(InvalidInputError, match="finite"):
+        retime(np.array([0.0, np.nan, 0.04]), q[:3], ARM)
+
+
+def test_streaming_limiter_respects_limits_and_lands() -> None:
+    dt = 0.002
+    rng = np.random.default_rng(1)
+    q, v = HOME.copy(), np.zeros(6)
+    qs = [q]
+    targets = HOME + rng.uniform(-1.0, 1.0, (6, 6))
+    for target in targets:  # a new target every 0.3 s, some reversing the motion
+        for _ in range(150):
+            q, v = limit_setpoint(q, v, target, dt, LIM)
+            qs.append(q)
+    for _ in range(2000):  # hold the last target until reached
+        q, v = limit_setpoint(q, v, targets[-1], dt, LIM)
+        qs.append(q)
+    qs = np.array(qs)
+    t = np.arange(len(qs)) * dt
+    assert np.all(np.abs(path_velocities(t, qs)) <= LIM.qd_max * (1 + 1e-6))
+    assert np.all(np.abs(path_accelerations(t, qs)) <= LIM.qdd_max * (1 + 1e-6))
+    np.testing.assert_array_equal(qs[-1], targets[-1])
+    # qdd_max = inf: a pure velocity limiter
+    vel_only = JointLimits(LIM.q_min, LIM.q_max, LIM.qd_max, np.full(6, np.inf))
+    q1, v1 = limit_setpoint(HOME, np.zeros(6), HOME + 1.0, dt, vel_only)
+    np.testing.assert_allclose(q1, HOME + LIM.qd_max * dt)
+    q2, _ = limit_setpoint(HOME, v1, HOME + 1e-4, dt, vel_only)
+    np.testing.assert_array_equal(q2, HOME + 1e-4)
+    # time to reach a far target matches the trapezoid closed form within a few periods
+    q, v = HOME.copy(), np.zeros(6)
+    d = np.array([2.0, 0.1, 0, 0, 0, 0])
+    n = 0
+    while not np.array_equal(q, HOME + d):
+        q, v = limit_setpoint(q, v, HOME + d, dt, LIM)
+        n += 1
+    vm, am = LIM.qd_max[0], LIM.qdd_max[0]
+    t_trap = d[0] / vm + vm / am  # cruise reached: d > vm^2 / am
+    assert abs(n * dt - t_trap) < 5 * dt
+
+
+# ------------------------------------------------------------------ the twin's arm
+
+
+@pytest.fixture(scope="module")
+def world():
+    from mmpa.sim.world import SimWorld
+
+    w = SimWorld(site="0")
+    yield w
+    w.close()
+
+
+def _peak_speed(world, seconds: float) -> np.ndarray:
+    """Largest |qdot| per joint (rad/s) seen while stepping ``seconds`` of physics."""
+    peak = np.zeros(6)
+    for _ in range(round(seconds / 0.004)):
+        world.step(0.004)
+        peak = np.maximum(peak, np.abs(world.arm.joint_velocities()))
+    return peak
+
+
+def test_follow_refuses_a_jump_before_moving(world) -> None:
+    arm = world.arm
+    arm.move_joints(HOME)
+    q0 = arm.joint_positions()
+    t = np.arange(10) * 0.02
+    q = np.tile(HOME, (10, 1))
+    q[5:, 0] += 1.5
+    with pytest.raises(JointLimitError, match="joint 1 velocity"):
+        arm.follow(t, q)
+    bad_t = t.copy()
+    bad_t[3] = np.nan
+    with pytest.raises(InvalidInputError, match="NaN"):
+        arm.follow(bad_t, np.tile(HOME, (10, 1)))
+    with pytest.raises(InvalidInputError, match="NaN"):
+        arm.command(np.full(6, np.nan))
+    world.step(0.2)
+    np.testing.assert_allclose(arm.joint_positions(), q0, atol=1e-3)  # nothing moved
+
+
+def test_follow_approaches_a_far_start_within_limits(world) -> None:
+    arm = world.arm
+    arm.move_joints(HOME)
+    start = HOME + np.array([1.5, 0, 0, 0, 0, 0])
+    t = np.arange(5) * 0.1
+    q = np.tile(start, (5, 1))
+    rec_t, rec_q = arm.follow(t, q, record_hz=250)
+    # recorded encoders: the approach happened before the path (the path starts at its start)
+    np.testing.assert_allclose(rec_q[0], start, atol=2e-3)
+    v = np.abs(path_velocities(rec_t, rec_q)).max(axis=0)
+    assert np.all(v <= LIM.qd_max * 1.02)
+
+
+@pytest.mark.parametrize("accel", [False, True])
+def test_command_stream_is_rate_limited(world, accel: bool) -> None:
+    arm = world.arm
+    arm.move_joints(HOME)
+    target = HOME + np.array([1.5, -0.5, 0.5, 0, 0, 0])
+    saved = arm.stream_limits
+    if accel:
+        arm.stream_limits = arm.limits
+    try:
+        arm.command(target)  # a 1.5 rad jump as one servo set-point
+        peak = _peak_speed(world, 2.0)
+    finally:
+        arm.stream_limits = saved
+    assert np.all(peak <= LIM.qd_max * 1.05), peak / LIM.qd_max
+    if accel:  # a triangular profile (1.5 rad < qd_max^2 / qdd_max): peak sqrt(qdd_max d)
+        assert peak[0] == pytest.approx(np.sqrt(LIM.qdd_max[0] * 1.5), rel=0.05)
+    else:  # cruising at the velocity limit, not crawling
+        assert peak[0] > 0.95 * LIM.qd_max[0]
+    np.testing.assert_allclose(arm.joint_positions(), target, atol=2e-3)
+
+
+def test_tmma_replay_retimes_a_path_that_jumps(world) -> None:
+    from mmpa.missions.mmpa import replay_tmma
+    from mmpa.robot.interfaces import PointCloud
+    from mmpa.robot.kinematics import fk
+    from mmpa.tasks import Task, ToolPath
+
+    n = 20
+    t = np.arange(n) * 0.02
+    q = np.tile(HOME, (n, 1))
+    q[10:, 0] += 1.5  # joint 1 jumps 1.5 rad in 20 ms: 24x its velocity limit
+    T = np.array([fk(ARM.dh, qi) for qi in q])
+    cloud = PointCloud(np.random.default_rng(0).normal(size=(10, 3)), None)
+    task = Task("jump", "0", np.eye(4), HOME, np.eye(4), cloud, ToolPath(t, q, T, 50.0))
+    path, (rec_t, rec_q) = replay_tmma(
+        task, arm=world.arm, gripper=None, arm_model=ARM, record_hz=250
+    )
+    assert path.time_scale > 20
+    check_path(path.t, path.q, LIM)
+    np.testing.assert_allclose(path.q, q)  # the same positions, slower
+    v = np.abs(path_velocities(rec_t, rec_q)).max(axis=0)
+    assert np.all(v <= LIM.qd_max * 1.02)
+    np.testing.assert_allclose(rec_q[-1], q[-1], atol=2e-3)
