@@ -19,6 +19,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from mmpa.errors import ConfigError
+from mmpa.yamlio import load_yaml, load_yaml_text
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -42,10 +43,7 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
                 if not isinstance(node[p], dict):
                     raise ConfigError(f"override {item!r}: {p!r} is not a section")
             node = node[p]
-        try:
-            value = yaml.safe_load(raw)
-        except yaml.YAMLError as e:
-            raise ConfigError(f"override {item!r}: value is not valid YAML ({e})") from None
+        value = load_yaml_text(raw, f"override {item!r}: the value")
         if parts[-1] == "profile" and len(parts) > 1:  # re-base the section (module doc)
             for k in [k for k in node if k not in ("seed", "profile")]:
                 del node[k]
@@ -60,12 +58,7 @@ def load_config(
     # only what is set explicitly: sections with a profile fill the rest when validated
     data: dict[str, Any] = model().model_dump(mode="json", exclude_unset=True)
     if path is not None:
-        try:
-            loaded = yaml.safe_load(Path(path).read_text())
-        except OSError as e:
-            raise ConfigError(f"cannot read config {path}: {e.strerror}") from None
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{path}: not valid YAML: {e}") from None
+        loaded = load_yaml(path)  # no aliases, bounded size; errors name the file
         if not isinstance(loaded, dict):
             raise ConfigError(f"{path}: a config file must be a YAML mapping")
         data = _merge(data, loaded)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, NoReturn
 
@@ -40,3 +42,34 @@ def profile_overrides(profile: str | None) -> list[str]:
     """The ``--set`` overrides of ``--profile NAME`` (they go first: later ``--set
     errors....`` overrides apply on top of the profile)."""
     return [] if profile is None else [f"errors.profile={profile}"]
+
+
+def in_range(
+    lo: float, hi: float, *, closed: bool = False
+) -> Callable[[float | None], float | None]:
+    """A typer callback accepting a finite number in ``(lo, hi]`` (``[lo, hi]`` when
+    ``closed``); click's own ranges let a NaN through (every comparison with NaN is false)."""
+
+    def check(value: float | None) -> float | None:
+        if value is None:
+            return value
+        above = value >= lo if closed else value > lo
+        if not (math.isfinite(value) and above and value <= hi):
+            span = f"{'[' if closed else '('}{lo:g}, {hi:g}]"
+            raise typer.BadParameter(f"must be a finite number in {span}, got {value}")
+        return value
+
+    return check
+
+
+def out_dir(path: Path) -> Path:
+    """Create the output folder ``path`` (and its parents), or fail with a clear error naming
+    the part of the path that is in the way (a file) or cannot be written."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        for parent in [path, *path.parents]:
+            if parent.exists() and not parent.is_dir():
+                fail(MMPAError(f"cannot create the output folder {path}: {parent} is a file"))
+        fail(MMPAError(f"cannot create the output folder {path}: {e.strerror or e}"))
+    return path

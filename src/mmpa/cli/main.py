@@ -63,10 +63,28 @@ def version() -> None:
     typer.echo(__version__)
 
 
+def _print_version(value: bool) -> None:
+    if value:
+        version()
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    show_version: Annotated[
+        bool,
+        typer.Option(
+            "--version", help="Print the version and exit.", callback=_print_version, is_eager=True
+        ),
+    ] = False,
+) -> None:
+    """mmpa: precise mobile manipulation with a MuJoCo digital twin."""
+
+
 @app.command()
 def demo(
     out: Annotated[Path, typer.Option(help="Run folder to write.")] = Path("runs/demo"),
-    seed: Annotated[int, typer.Option(help="Robot instance / noise seed.")] = 0,
+    seed: Annotated[int, typer.Option(help="Robot instance / noise seed.", min=0)] = 0,
     profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
@@ -101,7 +119,7 @@ def demo(
 def sim_snapshot(
     site: Annotated[str, typer.Option(help="Site name of the scene (e.g. 0, 1, 2, 2').")] = "1",
     out: Annotated[Path, typer.Option(help="Folder to write.")] = Path("runs/snapshot"),
-    seed: Annotated[int, typer.Option(help="Robot instance / noise seed.")] = 0,
+    seed: Annotated[int, typer.Option(help="Robot instance / noise seed.", min=0)] = 0,
     profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
@@ -123,7 +141,7 @@ def experiment(
         str | None, typer.Argument(help="Experiment to run; leave out to list them.")
     ] = None,
     trials: Annotated[int | None, typer.Option(help="Trials (default: the paper's count).")] = None,
-    seed: Annotated[int, typer.Option(help="Seed of every random draw.")] = 0,
+    seed: Annotated[int, typer.Option(help="Seed of every random draw.", min=0)] = 0,
     out: Annotated[Path | None, typer.Option(help="Run folder (default runs/NAME).")] = None,
     profile: ProfileOpt = None,
     config: ConfigOpt = None,
@@ -184,7 +202,7 @@ def teach(
     site: Annotated[str, typer.Argument(help="Site where the task is taught (1 or 2).")],
     task: Annotated[str, typer.Argument(help="Demonstration to teach (e.g. needle_site1).")],
     db: DbOpt = None,
-    seed: Annotated[int, typer.Option(help="Robot instance / noise seed.")] = 0,
+    seed: Annotated[int, typer.Option(help="Robot instance / noise seed.", min=0)] = 0,
     overwrite: Annotated[bool, typer.Option(help="Replace a stored task of that name.")] = False,
     profile: ProfileOpt = None,
     config: ConfigOpt = None,
@@ -214,8 +232,8 @@ def run_cmd(
         str | None, typer.Option(help="Automation site (default: the task's; 2' for the bump).")
     ] = None,
     db: DbOpt = None,
-    seed: Annotated[int, typer.Option(help="Robot instance / noise seed (as taught).")] = 0,
-    trial: Annotated[int, typer.Option(help="Which parking draw of this seed.")] = 0,
+    seed: Annotated[int, typer.Option(help="Robot instance / noise seed (as taught).", min=0)] = 0,
+    trial: Annotated[int, typer.Option(help="Which parking draw of this seed.", min=0)] = 0,
     tmma: Annotated[bool, typer.Option(help="Also replay the taught joints (TMMA).")] = False,
     profile: ProfileOpt = None,
     config: ConfigOpt = None,
@@ -246,5 +264,26 @@ from mmpa.cli import navigation as _navigation  # noqa: E402  (registers navigat
 
 _navigation.register(app)
 
+
+def main() -> None:
+    """The ``mmpa`` console script: the app, with errors that escape a command (a file in
+    the way of an output folder, a full disk, a refused input) printed as one clear line
+    instead of a traceback. A traceback still means a bug."""
+    import sys
+
+    try:
+        app()
+    except MMPAError as e:
+        console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
+        sys.exit(2)
+    except OSError as e:
+        where = f": {e.filename}" if e.filename else ""
+        console.print(f"[bold red]error:[/] {e.strerror or e}{where}", highlight=False)
+        sys.exit(1)
+    except KeyboardInterrupt:
+        console.print("[yellow]interrupted[/]")
+        sys.exit(130)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    app()
+    main()

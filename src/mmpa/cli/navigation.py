@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from mmpa.cli.common import ProfileOpt, console, fail
+from mmpa.cli.common import ProfileOpt, console, fail, in_range, out_dir
 from mmpa.errors import MMPAError
 
 __all__ = ["register"]
@@ -33,9 +33,11 @@ def navigate_cmd(
     method: Annotated[
         str, typer.Option(help="amcl | enhanced | enhanced-paper | trilateration | tamcl | hector")
     ] = "enhanced",
-    seed: Annotated[int, typer.Option(help="Robot instance / noise seed.")] = 0,
+    seed: Annotated[int, typer.Option(help="Robot instance / noise seed.", min=0)] = 0,
     out: Annotated[Path | None, typer.Option(help="Write summary.json here.")] = None,
-    timeout: Annotated[float, typer.Option(help="Simulated seconds.")] = 120.0,
+    timeout: Annotated[
+        float, typer.Option(help="Simulated seconds.", callback=in_range(0.0, 86400.0))
+    ] = 120.0,
     profile: ProfileOpt = None,
 ) -> None:
     """Drive the twin from a site to ``--to`` on the localization estimate (started from the
@@ -81,7 +83,7 @@ def navigate_cmd(
         "localization_error_yaw_deg": round(float(np.rad2deg(abs(e[2]))), 3),
     }
     if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
+        out_dir(out)
         (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     t = Table(title=f"mmpa navigate --to {to}", show_header=False)
     for k, v in summary.items():
@@ -97,7 +99,10 @@ def map_export(
     out: Annotated[Path, typer.Option(help="Map YAML to write (PGM beside it).")] = Path(
         "runs/map/map.yaml"
     ),
-    resolution: Annotated[float, typer.Option(help="m per cell.")] = 0.05,
+    resolution: Annotated[
+        float,
+        typer.Option(help="m per cell (0.005 to 1).", callback=in_range(0.005, 1.0, closed=True)),
+    ] = 0.05,
     seed: Annotated[
         int, typer.Option(help="Robot instance seed (map warp, reflector survey error).")
     ] = 0,
@@ -109,6 +114,7 @@ def map_export(
     from mmpa.navigation.mission import twin_map
     from mmpa.sim.world import SimWorld
 
+    out_dir(out.parent)
     try:
         with SimWorld(errors=_errors(seed, profile)) as world:
             grid = twin_map(world, resolution)

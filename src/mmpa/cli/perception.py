@@ -37,7 +37,7 @@ def _weights(text: str) -> dict[str, float]:
 def dataset_cmd(
     out: Annotated[Path, typer.Option(help="output .npz")],
     n: Annotated[int, typer.Option(help="number of images")] = 2400,
-    seed: Annotated[int, typer.Option(help="seed of the rendered scenes")] = 0,
+    seed: Annotated[int, typer.Option(help="seed of the rendered scenes", min=0)] = 0,
     work_view_prob: Annotated[
         float, typer.Option(help="fraction of working views (the robot's pre-grasp view)")
     ] = 0.0,
@@ -79,7 +79,7 @@ def train_cmd(
         list[Path] | None, typer.Option(help="training .npz, repeatable (default: render)")
     ] = None,
     n: Annotated[int, typer.Option(help="images to render when no --data")] = 2400,
-    seed: Annotated[int, typer.Option(help="data and training seed")] = 0,
+    seed: Annotated[int, typer.Option(help="data and training seed", min=0)] = 0,
     epochs: Annotated[int, typer.Option()] = 12,
     lr: Annotated[float, typer.Option(help="peak learning rate")] = 2e-3,
     threads: Annotated[int, typer.Option(help="CPU threads for torch")] = 2,
@@ -188,7 +188,9 @@ def evaluate_cmd(
     weights: Annotated[Path | None, typer.Option(help="weights (default: shipped)")] = None,
     data: Annotated[Path | None, typer.Option(help="test .npz (default: render)")] = None,
     n: Annotated[int, typer.Option(help="images to render when no --data")] = 300,
-    seed: Annotated[int, typer.Option(help="test-set seed (keep apart from training)")] = 1000,
+    seed: Annotated[
+        int, typer.Option(help="test-set seed (keep apart from training)", min=0)
+    ] = 1000,
     preprocess_dark: Annotated[bool, typer.Option(help="paper's dark preprocessing")] = False,
     json_out: Annotated[Path | None, typer.Option("--json", help="write results")] = None,
     threshold: Annotated[

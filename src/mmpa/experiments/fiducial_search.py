@@ -43,7 +43,7 @@ PAPER_FIGURES = {
 class Config(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    seed: int = 0
+    seed: int = Field(0, ge=0)  # every random draw flows from it (numpy: >= 0)
     trials: int | None = None  # repetitions per speed (paper: 10)
     speeds_cm_s: list[float] = Field(
         default_factory=lambda: [1.0, 1.25, 1.5, 1.75, 2.0, 2.25, 2.5, 2.75, 3.0]

@@ -49,7 +49,7 @@ SERVO_RESOLUTION = (320, 240)
 
 
 class Config(BaseModel):
-    seed: int = 0
+    seed: int = Field(0, ge=0)  # every random draw flows from it (numpy: >= 0)
     trials: int | None = None  # per object and light condition; None: the paper's 20
     objects: list[str] = Field(default_factory=lambda: list(CLASSES))
     lighting: list[str] = Field(default_factory=lambda: list(LIGHTING_CONDITIONS))

@@ -82,7 +82,7 @@ class TwinLocalization(BaseModel):
 class Config(TwinLocalization):
     model_config = ConfigDict(extra="forbid", coerce_numbers_to_str=True)
 
-    seed: int = 0
+    seed: int = Field(0, ge=0)  # every random draw flows from it (numpy: >= 0)
     trials: int | None = None  # paper: 20 per method
     methods: list[str] = Field(
         default_factory=lambda: ["amcl", "hector", "enhanced", "enhanced-paper"]

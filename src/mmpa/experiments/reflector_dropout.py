@@ -60,7 +60,7 @@ LABELS = {
 class Config(TwinLocalization):
     model_config = ConfigDict(extra="forbid")
 
-    seed: int = 0
+    seed: int = Field(0, ge=0)  # every random draw flows from it (numpy: >= 0)
     trials: int | None = None  # paper: one run (Fig. 10)
     methods: list[str] = Field(
         default_factory=lambda: ["amcl", "trilateration", "tamcl", "enhanced"]

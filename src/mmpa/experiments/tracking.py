@@ -27,7 +27,7 @@ PAPER_LIMIT = 0.1  # m/s
 
 
 class Config(BaseModel):
-    seed: int = 0
+    seed: int = Field(0, ge=0)  # every random draw flows from it (numpy: >= 0)
     trials: int | None = None  # per speed and predictor setting; None: 10
     speeds: list[float] = Field(default_factory=lambda: [0.02, 0.05, 0.1, 0.15, 0.2, 0.3])
     predictor: list[bool] = Field(default_factory=lambda: [False, True])

@@ -71,7 +71,7 @@ class DatasetConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     n_images: int = Field(2000, ge=1)
-    seed: int = 0
+    seed: int = Field(0, ge=0)  # every random draw flows from it (numpy: >= 0)
     width: int = 320
     height: int = 240
     objects_min: int = Field(1, ge=1)

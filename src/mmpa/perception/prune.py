@@ -43,7 +43,7 @@ class PruneConfig(BaseModel):
     val_images: int = Field(96, ge=8)
     long_term_epochs: int = Field(1, ge=0)
     min_channels: int = Field(8, ge=1)
-    seed: int = 0
+    seed: int = Field(0, ge=0)  # every random draw flows from it (numpy: >= 0)
     threads: int = 2
 
 

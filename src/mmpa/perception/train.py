@@ -56,7 +56,7 @@ class TrainConfig(BaseModel):
     batch_size: int = Field(16, ge=1)
     lr: float = Field(2e-3, gt=0)
     weight_decay: float = Field(1e-4, ge=0)
-    seed: int = 0
+    seed: int = Field(0, ge=0)  # every random draw flows from it (numpy: >= 0)
     threads: int = Field(2, ge=1)
     max_minutes: float | None = None  # stop early (at an epoch's end) past this time
     dark_preprocess_prob: float = Field(0.0, ge=0, le=1)  # train on preprocessed dark images

@@ -299,7 +299,7 @@ class ErrorModelConfig(_Cfg):
     (see the module docstring)."""
 
     profile: ProfileName = "realistic"
-    seed: int = 0
+    seed: int = Field(0, ge=0)  # every random draw flows from it (numpy: >= 0)
     kinematics: KinematicsError = KinematicsError()
     camera: CameraNoise = CameraNoise()
     lidar: LidarNoise = LidarNoise()

@@ -15,7 +15,6 @@ from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -24,6 +23,7 @@ from mmpa.geometry import Array, inv, make_T, rot_z, rpy_to_R
 from mmpa.robot.kinematics import fk, ik_nearest
 from mmpa.sim.lidar_noise import rough_pose
 from mmpa.sim.world import SimWorld
+from mmpa.yamlio import load_yaml
 
 __all__ = [
     "Demonstration",
@@ -91,10 +91,7 @@ def load_demonstrations(path: str | Path | None = None) -> dict[str, Demonstrati
     """Demonstrations by name (default: the built-in ``worlds/demonstrations.yaml``)."""
     if path is None:
         path = Path(str(resources.files("mmpa.sim") / "worlds" / "demonstrations.yaml"))
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError) as e:
-        raise ConfigError(f"cannot read demonstrations {path}: {e}") from None
+    data = load_yaml(path)  # no aliases, bounded size; errors name the file
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: must map demonstration names to definitions")
     out = {}
