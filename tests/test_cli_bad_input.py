@@ -80,3 +80,23 @@ def test_version_flag() -> None:
 
     res = runner.invoke(app, ["--version"])
     assert res.exit_code == 0 and res.output.strip() == __version__
+
+
+def test_log_level_option_turns_on_mmpa_logging() -> None:
+    import logging
+
+    log = logging.getLogger("mmpa")
+    before = (log.level, list(log.handlers))
+    try:
+        res = runner.invoke(app, ["--log-level", "debug", "version"])
+        assert res.exit_code == 0
+        assert log.level == logging.DEBUG
+        assert sum(getattr(h, "_mmpa", False) for h in log.handlers) == 1
+        res = runner.invoke(app, ["-v", "version"])
+        assert log.level == logging.INFO
+        assert sum(getattr(h, "_mmpa", False) for h in log.handlers) == 1  # not added twice
+        res = runner.invoke(app, ["--log-level", "chatty", "version"])
+        assert res.exit_code == 2 and "unknown log level 'chatty'" in res.output
+    finally:
+        log.setLevel(before[0])
+        log.handlers[:] = before[1]

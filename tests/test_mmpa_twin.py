@@ -226,7 +226,7 @@ class _ScaledDepthCamera:
         return getattr(self._camera, name)
 
 
-def test_depth_scale_fault_is_refused_and_the_arm_stays(site1):
+def test_depth_scale_fault_is_refused_and_the_arm_stays(site1, caplog):
     """A 3 % depth-scale fault (the audit's case: ok with a 14 mm wrong dT_B) is seen by the
     projective refinement's scale estimate and refused; the arm does not move after."""
     from mmpa.missions.mmpa import automate
@@ -234,7 +234,9 @@ def test_depth_scale_fault_is_refused_and_the_arm_stays(site1):
     w = site1.world
     site1.park()
     cam = _ScaledDepthCamera(w.camera, 1.03)
-    res = automate(site1.taught.task, arm=w.arm, camera=cam, gripper=w.gripper, robot=w.nominal)
+    with caplog.at_level("WARNING", logger="mmpa"):
+        res = automate(site1.taught.task, arm=w.arm, camera=cam, gripper=w.gripper, robot=w.nominal)
+    assert any("the arm does not move" in r.getMessage() for r in caplog.records)
     assert not res.ok and not res.executed and res.joint_path is None
     assert "depth calibration fault" in res.reason, res.reason
     pr = res.ipe.iterations[-1].projective

@@ -77,8 +77,22 @@ def _root(
             "--version", help="Print the version and exit.", callback=_print_version, is_eager=True
         ),
     ] = False,
+    verbose: Annotated[
+        int, typer.Option("--verbose", "-v", count=True, help="Log progress (-vv: debug).")
+    ] = 0,
+    log_level: Annotated[
+        str | None, typer.Option(help="Log level: debug, info, warning, error.")
+    ] = None,
 ) -> None:
     """mmpa: precise mobile manipulation with a MuJoCo digital twin."""
+    from mmpa.log import setup_logging
+
+    level = log_level or ("debug" if verbose > 1 else "info" if verbose else None)
+    if level is not None:
+        try:
+            setup_logging(level)
+        except MMPAError as e:
+            fail(e)
 
 
 @app.command()

@@ -13,6 +13,7 @@ reason; the arm never moves on a failed estimate.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -44,6 +45,8 @@ from mmpa.registration import (
 from mmpa.robot.description import RobotDescription
 from mmpa.robot.interfaces import Arm, Camera, PointCloud, RGBDFrame, mean_frame
 from mmpa.robot.kinematics import fk, ik_nearest
+
+_log = logging.getLogger(__name__)
 
 __all__ = ["IPE", "IPEConfig", "IPEIteration", "IPEResult", "capture_cloud"]
 
@@ -325,6 +328,14 @@ class IPE:
                 k, q, T_Bk_Ck, reg, dT_B, pose_difference(dT_C), t2 - t1, t3 - t2, t4 - t3, pr
             )
             result.iterations.append(it)
+            _log.debug(
+                "IPE iteration %d: registration %s (fitness %.3f, rmse %.2f mm)%s",
+                k,
+                "ok" if reg.ok else f"refused: {reg.reason}",
+                reg.fitness,
+                1e3 * reg.rmse,
+                "" if pr is None else f"; projective {'ok' if pr.ok else pr.reason}",
+            )
             if (
                 pr is not None
                 and cfg.projective is not None

@@ -13,6 +13,7 @@ is reachable without a joint jump. TMMA (Nair et al. 2019) replays the taught jo
 from __future__ import annotations
 
 import itertools
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,6 +30,8 @@ from mmpa.robot.description import ArmDescription, RobotDescription
 from mmpa.robot.interfaces import Arm, Camera, Gripper
 from mmpa.robot.kinematics import fk
 from mmpa.tasks import Task, ToolPath
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "AutomationConfig",
@@ -195,7 +198,15 @@ def automate(
         out.ipe = ipe
         if not ipe.ok or ipe.dT_B is None:
             out.reason = f"IPE failed: {ipe.reason}"
+            _log.warning("task %s: %s; the arm does not move", task.name, out.reason)
             return out
+        _log.info(
+            "task %s: IPE converged in %d iterations, parking offset %.1f mm / %.2f deg",
+            task.name,
+            ipe.n_iterations,
+            1e3 * float(np.linalg.norm(ipe.dT_B[:3, 3])),
+            float(np.rad2deg(np.arccos(np.clip((np.trace(ipe.dT_B[:3, :3]) - 1) / 2, -1, 1)))),
+        )
         T_new = transform_path(ipe.dT_B, task.path.T_arm_base_tool)
         out.T_arm_base_tool = T_new
         try:
@@ -206,6 +217,7 @@ def automate(
             break
         except (UnreachableError, JointLimitError) as e:
             out.reason = f"path planning failed: {e}"
+            _log.warning("task %s: %s", task.name, out.reason)
             if repark is None or len(out.reparks) >= cfg.max_reparks:
                 return out
         except InvalidInputError as e:
@@ -218,6 +230,7 @@ def automate(
                 f"{np.rad2deg(motion[2]):+.1f} deg)",
                 0.0,
             )
+        _log.info("task %s: re-parking by %s (x m, y m, yaw rad)", task.name, np.round(motion, 3))
         arm.move_joints(np.asarray(robot.arm.home, dtype=float))
         out.reparks.append(motion)
         out.ipe_before_repark.append(ipe)
@@ -229,6 +242,7 @@ def automate(
             arm, gripper, out.joint_path, task.path.gripper, record_hz=record_hz
         )
         out.executed = True
+        _log.info("task %s: executed the adapted path (%.1f s)", task.name, out.joint_path.duration)
     out.seconds["total"] = time.perf_counter() - t0
     return out
 
