@@ -83,8 +83,14 @@ def _root(
     log_level: Annotated[
         str | None, typer.Option(help="Log level: debug, info, warning, error.")
     ] = None,
+    robot: Annotated[
+        Path | None,
+        typer.Option(help="Robot file (YAML; `mmpa robot show` prints a template)."),
+    ] = None,
 ) -> None:
     """mmpa: precise mobile manipulation with a MuJoCo digital twin."""
+    if robot is not None:
+        _robot.use_robot_file(robot)
     from mmpa.log import setup_logging
 
     level = log_level or ("debug" if verbose > 1 else "info" if verbose else None)
@@ -275,8 +281,10 @@ def run_cmd(
 
 
 from mmpa.cli import navigation as _navigation  # noqa: E402  (registers navigate, map)
+from mmpa.cli import robot as _robot  # noqa: E402  (registers robot)
 
 _navigation.register(app)
+_robot.register(app)
 
 
 def main() -> None:

@@ -242,6 +242,21 @@ class RobotDescription(_Frozen):
     lidar: LidarDescription = LidarDescription()
     photosensor: PhotoSensorDescription = PhotoSensorDescription()
 
+    @model_validator(mode="after")
+    def _finite(self) -> RobotDescription:
+        def walk(value: object, where: str) -> None:
+            if isinstance(value, dict):
+                for k, v in value.items():
+                    walk(v, f"{where}.{k}" if where else str(k))
+            elif isinstance(value, list | tuple):
+                for i, v in enumerate(value):
+                    walk(v, f"{where}[{i}]")
+            elif isinstance(value, float) and not np.isfinite(value):
+                raise ValueError(f"{where} must be finite, got {value}")
+
+        walk(self.model_dump(), "")
+        return self
+
     @cached_property
     def T_base_link_arm_base(self) -> Array:
         """Arm mount on the base."""
@@ -252,9 +267,21 @@ class RobotDescription(_Frozen):
         return RobotDescription.model_validate({**self.model_dump(), **changes})
 
 
+_default: RobotDescription | None = None
+
+
 def default_robot() -> RobotDescription:
-    """The nominal robot of mmpa's digital twin."""
-    return RobotDescription()
+    """The nominal robot: the one set by :func:`set_default_robot` (the CLI's ``--robot
+    FILE``), else mmpa's digital twin (UR5e on a differential drive)."""
+    return _default if _default is not None else RobotDescription()
+
+
+def set_default_robot(robot: RobotDescription | None) -> None:
+    """Make ``robot`` the nominal robot of this process (``None``: back to the twin's)."""
+    global _default
+    if robot is not None and not isinstance(robot, RobotDescription):
+        raise InvalidInputError(f"need a RobotDescription, got {type(robot).__name__}")
+    _default = robot
 
 
 __all__ = [
@@ -268,4 +295,5 @@ __all__ = [
     "PhotoSensorDescription",
     "RobotDescription",
     "default_robot",
+    "set_default_robot",
 ]

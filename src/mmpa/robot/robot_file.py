@@ -1,0 +1,254 @@
+"""The robot file: a YAML description of a user's robot, read into a
+:class:`~mmpa.robot.description.RobotDescription`.
+
+A robot file holds any field of ``RobotDescription`` (missing fields keep mmpa's defaults),
+plus two shortcuts under ``arm``:
+
+- ``model: ur3e | ur5e | ur10e | ur16e`` takes the published DH parameters, joint speed
+  limits, link masses and reach of that Universal Robots e-Series arm (Universal Robots,
+  "DH parameters for calculations of kinematics and dynamics"; e-Series datasheets);
+- ``calibration: FILE`` applies the arm's factory kinematic calibration: the
+  ``calibration.conf`` the controller keeps (``[mounting]`` with ``delta_theta``,
+  ``delta_a``, ``delta_d``, ``delta_alpha``), added to the nominal DH as the controller does
+  (``theta_offset += delta_theta``, ``a += delta_a``, ``d += delta_d``,
+  ``alpha += delta_alpha``). A relative path is read beside the robot file.
+
+``frames`` names mmpa's frames as a ROS system does (REP-105 for the base, ur_description
+for the arm), with optional prefixes; :func:`frame_names` maps mmpa's names to them.
+
+Example::
+
+    name: my-ur10e-on-agv
+    arm: {model: ur10e, calibration: calibration.conf}
+    camera: {T_flange_camera_vec: [0.0, -0.09, 0.04, 0.0, 0.0, 0.0]}
+    lidar: {T_base_link_laser_vec: [0.3, 0.0, 0.2, 0.0, 0.0, 0.0], num_beams: 720,
+            angle_increment: 0.008726646}
+    frames: {prefix: "", arm_prefix: "ur_"}
+"""
+
+from __future__ import annotations
+
+import configparser
+import math
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from mmpa.errors import ConfigError
+from mmpa.robot.description import RobotDescription
+from mmpa.yamlio import load_yaml
+
+__all__ = [
+    "UR_MODELS",
+    "FrameNames",
+    "frame_names",
+    "load_robot",
+    "read_ur_calibration",
+    "robot_to_yaml",
+    "save_robot",
+]
+
+_D = math.pi / 180.0
+
+#: Published UR e-Series values: DH ``a``, ``d`` (m; ``alpha`` is pi/2, 0, 0, pi/2, -pi/2, 0
+#: for all four), link masses (kg), maximum joint speeds (rad/s) and reach (m).
+UR_MODELS: dict[str, dict[str, Any]] = {
+    "ur3e": {
+        "a": (0.0, -0.24355, -0.2132, 0.0, 0.0, 0.0),
+        "d": (0.15185, 0.0, 0.0, 0.13105, 0.08535, 0.0921),
+        "link_masses": (1.98, 3.4445, 1.437, 0.871, 0.805, 0.261),
+        "qd_max": (180 * _D, 180 * _D, 180 * _D, 360 * _D, 360 * _D, 360 * _D),
+        "reach": 0.5,
+    },
+    "ur5e": {
+        "a": (0.0, -0.425, -0.3922, 0.0, 0.0, 0.0),
+        "d": (0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996),
+        "link_masses": (3.761, 8.058, 2.846, 1.37, 1.3, 0.365),
+        "qd_max": (180 * _D,) * 6,
+        "reach": 0.85,
+    },
+    "ur10e": {
+        "a": (0.0, -0.6127, -0.57155, 0.0, 0.0, 0.0),
+        "d": (0.1807, 0.0, 0.0, 0.17415, 0.11985, 0.11655),
+        "link_masses": (7.369, 13.051, 3.989, 2.1, 1.98, 0.615),
+        "qd_max": (120 * _D, 120 * _D, 180 * _D, 180 * _D, 180 * _D, 180 * _D),
+        "reach": 1.3,
+    },
+    "ur16e": {
+        "a": (0.0, -0.4784, -0.36, 0.0, 0.0, 0.0),
+        "d": (0.1807, 0.0, 0.0, 0.17415, 0.11985, 0.11655),
+        "link_masses": (7.369, 10.45, 4.321, 2.18, 2.033, 0.907),
+        "qd_max": (120 * _D, 120 * _D, 180 * _D, 180 * _D, 180 * _D, 180 * _D),
+        "reach": 0.9,
+    },
+}
+
+
+class FrameNames(BaseModel):
+    """ROS frame names of mmpa's frames. Base frames follow REP-105 (``map``, ``odom``,
+    ``base_link``, ``laser``) with ``prefix``; the arm's follow ur_description with
+    ``arm_prefix``: mmpa's ``arm_base`` is UR's ``base`` (REP-103, x backward: 180 deg in
+    yaw from ur_description's ``base_link``, which is not mmpa's mobile ``base_link``), and
+    mmpa's ``flange`` is UR's ``tool0``."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    prefix: str = ""
+    arm_prefix: str = ""
+    map: str = "map"
+    odom: str = "odom"
+    base_link: str = "base_link"
+    laser: str = "laser"
+    arm_base: str = "base"
+    flange: str = "tool0"
+    tcp: str = "tcp"
+    camera_optical: str = "camera_color_optical_frame"
+
+
+def frame_names(frames: FrameNames | None = None) -> dict[str, str]:
+    """mmpa frame name -> ROS frame name (prefixes applied; ``map`` and ``odom`` are
+    shared by every robot of a site and get no prefix)."""
+    f = frames or FrameNames()
+    arm = f.prefix + f.arm_prefix
+    return {
+        "map": f.map,
+        "odom": f.prefix + f.odom,
+        "base_link": f.prefix + f.base_link,
+        "laser": f.prefix + f.laser,
+        "arm_base": arm + f.arm_base,
+        "flange": arm + f.flange,
+        "tcp": arm + f.tcp,
+        "camera_optical": f.prefix + f.camera_optical,
+    }
+
+
+def _floats(text: str, what: str) -> tuple[float, ...]:
+    body = text.strip().strip("[]")
+    try:
+        values = tuple(float(x) for x in body.replace(",", " ").split())
+    except ValueError:
+        raise ConfigError(f"{what}: not a list of numbers: {text.strip()[:80]!r}") from None
+    if len(values) != 6 or not all(math.isfinite(v) for v in values):
+        raise ConfigError(f"{what}: need 6 finite numbers, got {len(values)}")
+    return values
+
+
+def read_ur_calibration(path: str | Path) -> dict[str, tuple[float, ...]]:
+    """The DH deltas of a UR controller's ``calibration.conf`` (``[mounting]`` section):
+    ``{"delta_theta", "delta_a", "delta_d", "delta_alpha"}`` -> 6 values each (rad, m)."""
+    p = Path(path)
+    parser = configparser.ConfigParser()
+    try:
+        if p.stat().st_size > 1_000_000:
+            raise ConfigError(f"{p}: too large for a UR calibration file")
+        parser.read_string(p.read_text(encoding="utf-8"), source=str(p))
+    except OSError as e:
+        raise ConfigError(f"cannot read UR calibration {p}: {e.strerror or e}") from e
+    except (configparser.Error, UnicodeDecodeError) as e:
+        raise ConfigError(f"{p}: not a UR calibration file: {e}") from e
+    if "mounting" not in parser:
+        raise ConfigError(f"{p}: no [mounting] section (a UR controller's calibration.conf)")
+    sec = parser["mounting"]
+    out = {}
+    for key in ("delta_theta", "delta_a", "delta_d", "delta_alpha"):
+        if key not in sec:
+            raise ConfigError(f"{p}: [mounting] lacks {key}")
+        out[key] = _floats(sec[key], f"{p}: [mounting] {key}")
+    return out
+
+
+def _apply_shortcuts(doc: dict[str, Any], where: Path) -> dict[str, Any]:
+    arm = doc.get("arm")
+    if arm is None:
+        return doc
+    if not isinstance(arm, dict):
+        raise ConfigError(f"{where}: arm must be a mapping")
+    arm = dict(arm)
+    model = arm.pop("model", None)
+    calibration = arm.pop("calibration", None)
+    dh = dict(arm.get("dh") or {})
+    if model is not None:
+        key = str(model).lower()
+        if key not in UR_MODELS:
+            raise ConfigError(
+                f"{where}: arm.model {model!r} is not known; valid: {', '.join(UR_MODELS)}"
+            )
+        spec = UR_MODELS[key]
+        dh = {"a": spec["a"], "d": spec["d"], **dh}
+        arm.setdefault("name", key)
+        for k in ("link_masses", "qd_max", "reach"):
+            arm.setdefault(k, spec[k])
+    if calibration is not None:
+        cal_path = Path(str(calibration))
+        if not cal_path.is_absolute():
+            cal_path = where.parent / cal_path
+        try:
+            deltas = read_ur_calibration(cal_path)
+        except ConfigError as e:
+            raise ConfigError(f"{where}: arm.calibration: {e}") from None
+        base = RobotDescription().arm.dh.model_copy(update=dh) if dh else RobotDescription().arm.dh
+        a, d, alpha, theta = base.as_arrays()
+        dh = {
+            "a": tuple((a + deltas["delta_a"]).tolist()),
+            "d": tuple((d + deltas["delta_d"]).tolist()),
+            "alpha": tuple((alpha + deltas["delta_alpha"]).tolist()),
+            "theta_offset": tuple((theta + deltas["delta_theta"]).tolist()),
+        }
+    if dh:
+        arm["dh"] = dh
+    return {**doc, "arm": arm}
+
+
+def load_robot(path: str | Path) -> tuple[RobotDescription, FrameNames]:
+    """Read a robot file (module docstring): the description and its frame names.
+    Errors (:class:`ConfigError`) name the file and the field."""
+    p = Path(path)
+    doc = load_yaml(p)
+    if doc is None:
+        doc = {}
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{p}: a robot file must be a YAML mapping")
+    doc = dict(doc)
+    try:
+        frames = FrameNames.model_validate(doc.pop("frames", None) or {})
+    except ValidationError as e:
+        raise ConfigError(f"{p}: frames: {_first_error(e)}") from None
+    doc = _apply_shortcuts(doc, p)
+    try:
+        return RobotDescription.model_validate(doc), frames
+    except ValidationError as e:
+        raise ConfigError(f"{p}: {_first_error(e)}") from None
+
+
+def _first_error(e: ValidationError) -> str:
+    err = e.errors()[0]
+    loc = ".".join(str(x) for x in err["loc"])
+    return f"{loc}: {err['msg']}" if loc else str(err["msg"])
+
+
+class _Dumper(yaml.SafeDumper):
+    """Block mappings, flow lists (a 6-vector on one line)."""
+
+
+_Dumper.add_representer(
+    list, lambda d, v: d.represent_sequence("tag:yaml.org,2002:seq", v, flow_style=True)
+)
+
+
+def robot_to_yaml(robot: RobotDescription, frames: FrameNames | None = None) -> str:
+    """The robot file text of ``robot`` (every field, so it is a complete template)."""
+    doc = robot.model_dump(mode="json")
+    doc["frames"] = (frames or FrameNames()).model_dump(mode="json")
+    return yaml.dump(doc, Dumper=_Dumper, sort_keys=False, width=100)
+
+
+def save_robot(robot: RobotDescription, path: str | Path, frames: FrameNames | None = None) -> Path:
+    """Write ``robot`` as a robot file (written to a temporary file, then renamed)."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(robot_to_yaml(robot, frames), encoding="utf-8")
+    tmp.replace(p)
+    return p
