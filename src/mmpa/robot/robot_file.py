@@ -168,7 +168,10 @@ def _apply_shortcuts(doc: dict[str, Any], where: Path) -> dict[str, Any]:
     arm = dict(arm)
     model = arm.pop("model", None)
     calibration = arm.pop("calibration", None)
-    dh = dict(arm.get("dh") or {})
+    dh = arm.get("dh") or {}
+    if not isinstance(dh, dict):
+        raise ConfigError(f"{where}: arm.dh must be a mapping (a, d, alpha, theta_offset)")
+    dh = dict(dh)
     if model is not None:
         key = str(model).lower()
         if key not in UR_MODELS:

@@ -50,7 +50,7 @@ ProfileName = Literal["ideal", "reference", "realistic", "harsh"]
 
 
 class _Cfg(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class KinematicsError(_Cfg):
