@@ -336,23 +336,6 @@ class IPE:
                 1e3 * reg.rmse,
                 "" if pr is None else f"; projective {'ok' if pr.ok else pr.reason}",
             )
-            if (
-                pr is not None
-                and cfg.projective is not None
-                and not pr.ok
-                and pr.n_inliers >= cfg.projective.min_inliers
-                and abs(pr.scale - 1.0) > cfg.projective.max_scale_error
-            ):
-                # the refinement saw the scene at a different depth scale than at teaching:
-                # a depth calibration fault (a 3 % scale error shifts dT_B by ~1 cm), not a
-                # pose offset; no estimate from this camera is trusted
-                result.reason = (
-                    f"iteration {k}: depth scale {pr.scale:.4f} against the teaching capture "
-                    f"(accepted 1 +- {cfg.projective.max_scale_error}): a depth calibration "
-                    "fault of the camera; no estimate"
-                )
-                result.dT_B = None
-                return result
             if not reg.ok or dT_B is None:
                 if result.dT_B is None and not retreated and cfg.retreat > 0 and k < cfg.beta:
                     # beyond the paper: no estimate yet (little overlap, e.g. a tilted base):
@@ -374,6 +357,18 @@ class IPE:
                 )
                 return result
             result.dT_B = dT_B
+            if converged(dT_C, cfg.alpha) and _scale_fault(pr, cfg):
+                # at the taught viewpoint the refinement saw the scene at another depth scale
+                # than at teaching: a depth calibration fault (3 % moves dT_B by ~1 cm), not
+                # a pose offset; no estimate from this camera is trusted. (Away from the
+                # viewpoint the scale trades with depth-wise motion and is not checked.)
+                result.reason = (
+                    f"iteration {k}: depth scale {pr.scale:.4f} against the teaching capture "
+                    f"(accepted 1 +- {cfg.projective.max_scale_error}): a depth calibration "
+                    "fault of the camera; no estimate"
+                )
+                result.dT_B = None
+                return result
             if converged(dT_C, cfg.alpha):
                 result.ok = True
                 result.projective = pr  # dT_B above already comes from it when ok
@@ -401,6 +396,18 @@ class IPE:
         )
         result.dT_B = None
         return result
+
+
+def _scale_fault(pr: ProjectiveResult | None, cfg: IPEConfig) -> bool:
+    """The projective refinement refused a view for its depth scale alone: enough inliers,
+    ``|s - 1|`` beyond ``max_scale_error``."""
+    return (
+        pr is not None
+        and cfg.projective is not None
+        and not pr.ok
+        and pr.n_inliers >= cfg.projective.min_inliers
+        and abs(pr.scale - 1.0) > cfg.projective.max_scale_error
+    )
 
 
 def _source_points(taught: PointCloud, cfg: IPEConfig) -> Array:
