@@ -1,0 +1,230 @@
+"""Universal Robots arm backend over RTDE (``ur-rtde``, the optional extra ``ur``).
+
+:class:`URArm` implements :class:`mmpa.robot.interfaces.Arm` (plus the streaming
+``command``) on a UR e-Series controller, keeping the limits contract of the protocol:
+
+- every target and path is checked against the arm's position, velocity and acceleration
+  limits (:mod:`mmpa.robot.limits`) before a single command is sent;
+- ``move_joints`` is the controller's ``moveJ`` at ``speed_fraction`` of the slowest joint's
+  velocity and acceleration limits;
+- ``follow`` approaches the path's start with ``moveJ`` when the arm is away from it, then
+  streams the path with ``servoJ`` at the controller's rate (``frequency``: 500 Hz on
+  e-Series), timed by the controller's own ``initPeriod`` / ``waitPeriod``;
+- ``command`` sets a streaming target that a background thread at the controller's rate
+  follows through the same velocity limiter as the twin (:func:`limit_setpoint`);
+- a protective or emergency stop (read from RTDE receive) aborts a stream and refuses every
+  motion with :class:`~mmpa.errors.MMPAError` until it is cleared on the pendant.
+
+``control`` and ``receive`` may be given (objects with ur-rtde's ``RTDEControlInterface`` /
+``RTDEReceiveInterface`` methods); otherwise they are made from ``host``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from mmpa.errors import InvalidInputError, MMPAError
+from mmpa.geometry import Array
+from mmpa.robot.limits import JointLimits, check_path, check_positions, limit_setpoint
+
+__all__ = ["URArm", "URConfig"]
+
+_log = logging.getLogger(__name__)
+
+
+class URConfig(BaseModel):
+    """Connection and streaming parameters of :class:`URArm` (ur-rtde's names and units)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    host: str = "192.168.1.10"
+    frequency: float = Field(500.0, gt=0, le=1000)  # Hz: e-Series 500, CB3 125
+    speed_fraction: float = Field(0.5, gt=0, le=1)  # of the velocity/acceleration limits
+    servo_lookahead: float = Field(0.1, ge=0.03, le=0.2)  # s, servoJ lookahead_time
+    servo_gain: float = Field(300.0, ge=100, le=2000)  # servoJ gain
+    approach_tolerance: float = Field(1e-3, gt=0)  # rad: farther from a path's start: moveJ
+    stop_deceleration: float = Field(2.0, gt=0)  # rad/s^2 of servoStop / stopJ
+
+
+class URArm:
+    """A UR arm over RTDE as an mmpa ``Arm`` (module docstring)."""
+
+    def __init__(
+        self,
+        limits: JointLimits,
+        cfg: URConfig | None = None,
+        *,
+        control: Any = None,
+        receive: Any = None,
+    ) -> None:
+        self.cfg = cfg = cfg or URConfig()
+        self.limits = limits
+        if control is None or receive is None:
+            try:
+                import rtde_control
+                import rtde_receive
+            except ImportError as e:  # pragma: no cover - depends on the install
+                raise MMPAError("the UR backend needs ur-rtde: pip install 'mmpa[ur]'") from e
+            try:
+                control = control or rtde_control.RTDEControlInterface(cfg.host, cfg.frequency)
+                receive = receive or rtde_receive.RTDEReceiveInterface(cfg.host, cfg.frequency)
+            except RuntimeError as e:  # pragma: no cover - needs a controller
+                raise MMPAError(f"cannot connect to the UR controller at {cfg.host}: {e}") from e
+        self._control, self._receive = control, receive
+        self._dt = 1.0 / cfg.frequency
+        self._lock = threading.Lock()
+        self._target: Array | None = None
+        self._stream: threading.Thread | None = None
+        self._stop = threading.Event()
+        self.stream_error: Exception | None = None
+
+    # ------------------------------------------------------------------ state
+    def joint_positions(self) -> Array:
+        """Encoder readings (rad), shape (6,)."""
+        return np.asarray(self._receive.getActualQ(), dtype=float)
+
+    def stopped(self) -> str | None:
+        """Why the controller will not move (protective / emergency stop), or None."""
+        if self._receive.isEmergencyStopped():
+            return "emergency stop"
+        if self._receive.isProtectiveStopped():
+            return "protective stop"
+        return None
+
+    def _check_can_move(self) -> None:
+        why = self.stopped()
+        if why is not None:
+            raise MMPAError(f"the UR arm is in {why}: clear it on the pendant, then retry")
+
+    # ------------------------------------------------------------------ motions
+    def move_joints(self, q: Array, duration: float | None = None) -> None:
+        """``moveJ`` to ``q`` at ``speed_fraction`` of the limits (``duration`` ignored: the
+        controller times the move)."""
+        q = np.asarray(q, dtype=float)
+        if q.shape != (6,):
+            raise InvalidInputError(f"joint target must be 6 angles, got shape {q.shape}")
+        q = check_positions(q, self.limits)
+        self.stop_stream()
+        self._check_can_move()
+        f = self.cfg.speed_fraction
+        speed = f * float(np.min(self.limits.qd_max))
+        accel = f * float(np.min(self.limits.qdd_max))
+        if not self._control.moveJ(q.tolist(), speed, accel):
+            raise MMPAError(f"the UR controller refused moveJ ({self.stopped() or 'no reason'})")
+
+    def follow(
+        self, times: Array, q_path: Array, record_hz: float | None = None
+    ) -> tuple[Array, Array] | None:
+        """Stream ``q_path`` (T, 6) at ``times`` (T,) s with ``servoJ`` at the controller's
+        rate (linear interpolation between samples); with ``record_hz`` also read the
+        encoders at that rate and return ``(t (M,), q (M, 6))``."""
+        times = np.asarray(times, dtype=float)
+        q_path = np.asarray(q_path, dtype=float)
+        check_path(times, q_path, self.limits)  # before anything moves
+        if record_hz is not None and not (np.isfinite(record_hz) and record_hz > 0):
+            raise InvalidInputError(f"record_hz must be a positive rate, got {record_hz}")
+        self.stop_stream()
+        self._check_can_move()
+        if np.max(np.abs(q_path[0] - self.joint_positions())) > self.cfg.approach_tolerance:
+            self.move_joints(q_path[0])
+        t_rel = times - times[0]
+        n = int(np.floor(t_rel[-1] / self._dt + 1e-9)) + 1
+        every = None if record_hz is None else max(1, round(self.cfg.frequency / record_hz))
+        rec_t: list[float] = []
+        rec_q: list[Array] = []
+        c = self._control
+        try:
+            for k in range(n):
+                t_start = c.initPeriod()
+                t = min(k * self._dt, t_rel[-1])
+                q = np.array([np.interp(t, t_rel, q_path[:, j]) for j in range(6)])
+                c.servoJ(
+                    q.tolist(), 0.0, 0.0, self._dt, self.cfg.servo_lookahead, self.cfg.servo_gain
+                )
+                if every is not None and k % every == 0:
+                    rec_t.append(t)
+                    rec_q.append(self.joint_positions())
+                if k % 25 == 0 and self.stopped() is not None:
+                    raise MMPAError(f"the UR arm stopped during the path: {self.stopped()}")
+                c.waitPeriod(t_start)
+        finally:
+            c.servoStop(self.cfg.stop_deceleration)
+        if every is None:
+            return None
+        return np.array(rec_t), np.array(rec_q)
+
+    # ------------------------------------------------------------------ streaming
+    def command(self, q: Array) -> None:
+        """Streaming target (as ``servoJ`` from a slower loop): a background thread at the
+        controller's rate moves the set-point toward ``q`` within the velocity limits."""
+        q = np.asarray(q, dtype=float)
+        if q.shape != (6,):
+            raise InvalidInputError(f"joint target must be 6 angles, got shape {q.shape}")
+        q = check_positions(q, self.limits)
+        if self.stream_error is not None:
+            raise MMPAError(f"the command stream stopped: {self.stream_error}")
+        with self._lock:
+            self._target = q.copy()
+        if self._stream is None:
+            self._check_can_move()
+            self._stop.clear()
+            self._stream = threading.Thread(target=self._run_stream, daemon=True, name="ur-servo")
+            self._stream.start()
+
+    def _run_stream(self) -> None:
+        c = self._control
+        vel_only = JointLimits(
+            self.limits.q_min, self.limits.q_max, self.limits.qd_max, np.full(6, np.inf)
+        )
+        q = self.joint_positions()
+        v = np.zeros(6)
+        try:
+            k = 0
+            while not self._stop.is_set():
+                t_start = c.initPeriod()
+                with self._lock:
+                    target = self._target
+                if target is not None:
+                    q, v = limit_setpoint(q, v, target, self._dt, vel_only)
+                    c.servoJ(
+                        q.tolist(), 0.0, 0.0, self._dt, self.cfg.servo_lookahead,
+                        self.cfg.servo_gain,
+                    )  # fmt: skip
+                if k % 25 == 0 and self.stopped() is not None:
+                    raise MMPAError(f"the UR arm stopped: {self.stopped()}")
+                k += 1
+                c.waitPeriod(t_start)
+        except Exception as e:  # reported to the caller at its next command
+            self.stream_error = e
+            _log.error("UR command stream stopped: %s", e)
+        finally:
+            c.servoStop(self.cfg.stop_deceleration)
+
+    def stop_stream(self) -> None:
+        """End a ``command`` stream (the arm decelerates to rest)."""
+        if self._stream is not None:
+            self._stop.set()
+            self._stream.join()
+            self._stream = None
+            with self._lock:
+                self._target = None
+
+    def stop(self) -> None:
+        """Stop any motion now (``stopJ``)."""
+        self.stop_stream()
+        self._control.stopJ(self.cfg.stop_deceleration)
+
+    def close(self) -> None:
+        self.stop_stream()
+        self._control.disconnect()
+
+    def __enter__(self) -> URArm:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

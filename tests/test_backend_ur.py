@@ -1,0 +1,99 @@
+"""The UR backend's command stream and limits, against a recording FAKE of the RTDE
+interfaces (tests/ur_rtde_fake.py; no URSim here)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from tests.ur_rtde_fake import FakeRTDE
+
+from mmpa.backends.ur import URArm, URConfig
+from mmpa.errors import InvalidInputError, JointLimitError, MMPAError
+from mmpa.robot.description import ArmDescription
+from mmpa.robot.interfaces import Arm
+from mmpa.robot.limits import JointLimits, path_accelerations, path_velocities
+
+ARM = ArmDescription()
+LIM = JointLimits.from_description(ARM)
+HOME = np.array(ARM.home)
+
+
+def _arm(q0=HOME) -> tuple[URArm, FakeRTDE]:
+    fake = FakeRTDE(q0)
+    return URArm(LIM, URConfig(), control=fake, receive=fake), fake
+
+
+def _ramp(n: int = 101, dt: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    t = np.arange(n) * dt
+    s = 0.5 - 0.5 * np.cos(np.pi * t / t[-1])  # smooth start and stop
+    return t, HOME + np.outer(s, [0.4, -0.2, 0.3, 0.0, 0.1, 0.0])
+
+
+def test_follow_streams_servoj_at_the_controller_rate_within_limits() -> None:
+    arm, fake = _arm()
+    assert isinstance(arm, Arm)
+    t, q = _ramp()
+    rec_t, rec_q = arm.follow(t, q, record_hz=100)
+    ts, qs = fake.servo_targets()
+    assert len(qs) == 501  # 1 s at 500 Hz, both ends included
+    np.testing.assert_allclose(np.diff(ts), 0.002)  # one servoJ per controller period
+    np.testing.assert_allclose(qs[-1], q[-1], atol=1e-12)
+    v = np.abs(path_velocities(ts, qs)).max(axis=0)
+    # the accelerations at the path's own sample spacing (every 5th period: 10 ms), as the
+    # limits contract measures them (the stream interpolates linearly between samples)
+    a = np.abs(path_accelerations(ts[::5], qs[::5])).max(axis=0)
+    assert np.all(v <= LIM.qd_max) and np.all(a <= LIM.qdd_max * 1.05)
+    assert fake.calls[-1][1] == "servoStop"
+    assert len(rec_t) == 101 and np.allclose(rec_q[-1], q[-1])
+    assert not any(n == "moveJ" for _, n, _ in fake.calls)  # started where the arm was
+
+
+def test_far_start_gets_a_movej_and_bad_paths_send_nothing() -> None:
+    arm, fake = _arm(HOME + np.array([0.5, 0, 0, 0, 0, 0]))
+    t, q = _ramp()
+    arm.follow(t, q)
+    first = fake.calls[0]
+    assert first[1] == "moveJ" and np.allclose(first[2][0], q[0])
+    assert first[2][1] <= LIM.qd_max.min() and first[2][2] <= LIM.qdd_max.min()
+    n = len(fake.calls)
+    jump = q.copy()
+    jump[50:, 0] += 1.0
+    with pytest.raises(JointLimitError, match="joint 1 velocity"):
+        arm.follow(t, jump)
+    out = q.copy()
+    out[10, 2] = 4.0
+    with pytest.raises(JointLimitError, match="joint 3"):
+        arm.follow(t, out)
+    with pytest.raises(InvalidInputError, match="NaN"):
+        arm.move_joints(np.full(6, np.nan))
+    assert len(fake.calls) == n  # nothing was sent
+
+
+def test_protective_stop_aborts_the_stream_and_refuses_motion() -> None:
+    arm, fake = _arm()
+    t, q = _ramp()
+    fake.protective_stop_at = 0.3
+    with pytest.raises(MMPAError, match="protective stop"):
+        arm.follow(t, q)
+    ts, _ = fake.servo_targets()
+    assert 0.3 <= ts[-1] < 0.36  # stopped within one check interval (25 periods)
+    assert fake.calls[-1][1] == "servoStop"
+    with pytest.raises(MMPAError, match="protective stop: clear it on the pendant"):
+        arm.move_joints(HOME)
+
+
+def test_command_stream_is_velocity_limited() -> None:
+    arm, fake = _arm()
+    target = HOME + np.array([1.0, 0, 0, 0, 0, 0])
+    arm.command(target)
+    deadline = time.monotonic() + 20
+    while fake.clock < 1.0 and time.monotonic() < deadline:  # 1 s of virtual controller time
+        time.sleep(0.01)
+    arm.stop_stream()
+    ts, qs = fake.servo_targets()
+    v = np.abs(path_velocities(ts, qs))
+    assert v.max() <= LIM.qd_max[0] * (1 + 1e-9)
+    assert qs[-1][0] == pytest.approx(HOME[0] + 1.0)  # 1 rad at pi rad/s: there by 0.32 s
+    assert fake.calls[-1][1] == "servoStop"
