@@ -97,3 +97,20 @@ def test_command_stream_is_velocity_limited() -> None:
     assert v.max() <= LIM.qd_max[0] * (1 + 1e-9)
     assert qs[-1][0] == pytest.approx(HOME[0] + 1.0)  # 1 rad at pi rad/s: there by 0.32 s
     assert fake.calls[-1][1] == "servoStop"
+
+
+def test_freedrive_demonstration_becomes_a_teach_recording() -> None:
+    from mmpa.missions.mmpa import trajectory_recorder
+
+    arm, fake = _arm()
+    fake.hand = lambda t: HOME + np.array([0.2, 0.0, 0.1, 0.0, 0.0, 0.0]) * min(t, 2.0) / 2.0
+    t, q = arm.record_freedrive(50.0, done=lambda: fake.clock >= 2.5)
+    names = [n for _, n, _ in fake.calls]
+    assert names[0] == "freedriveMode" and names[-1] == "endFreedriveMode"
+    np.testing.assert_allclose(np.diff(t), 0.02)  # 50 Hz on the controller's clock
+    assert t[-1] == pytest.approx(2.5, abs=0.025)  # within one sample
+    np.testing.assert_allclose(q[-1], HOME + np.array([0.2, 0, 0.1, 0, 0, 0]), atol=1e-12)
+    tt, qq, g, rate = trajectory_recorder(t, q, 50.0)()
+    assert rate == 50.0 and tt[0] == 0.0 and np.all(g == 0) and np.array_equal(qq, q)
+    with pytest.raises(InvalidInputError, match="N >= 2"):
+        trajectory_recorder(t[:1], q[:1], 50.0)

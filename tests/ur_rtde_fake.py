@@ -49,11 +49,24 @@ class FakeRTDE:
     def waitPeriod(self, t_start) -> None:
         self.clock = t_start + self.period
 
+    def freedriveMode(self) -> bool:
+        self._log("freedriveMode")
+        return True
+
+    def endFreedriveMode(self) -> bool:
+        self._log("endFreedriveMode")
+        return True
+
     def disconnect(self) -> None:
         self._log("disconnect")
 
     # --- receive
+    #: a person moving the arm in freedrive: q as a function of the virtual clock (or None)
+    hand = None
+
     def getActualQ(self):
+        if self.hand is not None and any(n == "freedriveMode" for _, n, _ in self.calls):
+            self.q = np.asarray(self.hand(self.clock), float)
         return self.q.tolist()
 
     def isProtectiveStopped(self) -> bool:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -157,6 +158,39 @@ class URArm:
         if every is None:
             return None
         return np.array(rec_t), np.array(rec_q)
+
+    # ------------------------------------------------------------------ teaching
+    def record_freedrive(
+        self, rate_hz: float, done: Callable[[], bool], max_seconds: float = 600.0
+    ) -> tuple[Array, Array]:
+        """A person's demonstration: freedrive mode on, the encoders read at ``rate_hz``
+        (timed by the controller) until ``done()`` or ``max_seconds``, freedrive off.
+        Returns ``t`` (N,) s from 0 and ``q`` (N, 6) rad (for
+        :func:`mmpa.missions.mmpa.trajectory_recorder`)."""
+        if not (np.isfinite(rate_hz) and 0 < rate_hz <= self.cfg.frequency):
+            raise InvalidInputError(f"rate_hz must be in (0, {self.cfg.frequency}], got {rate_hz}")
+        self.stop_stream()
+        self._check_can_move()
+        c = self._control
+        every = max(1, round(self.cfg.frequency / rate_hz))
+        t_rec: list[float] = []
+        q_rec: list[Array] = []
+        if not c.freedriveMode():
+            raise MMPAError("the UR controller refused freedrive mode")
+        try:
+            k = 0
+            while k * self._dt <= max_seconds:
+                t_start = c.initPeriod()
+                if k % every == 0:
+                    t_rec.append(k * self._dt)
+                    q_rec.append(self.joint_positions())
+                    if done():
+                        break
+                k += 1
+                c.waitPeriod(t_start)
+        finally:
+            c.endFreedriveMode()
+        return np.array(t_rec), np.array(q_rec)
 
     # ------------------------------------------------------------------ streaming
     def command(self, q: Array) -> None:

@@ -42,6 +42,7 @@ __all__ = [
     "repark_motion",
     "replay_tmma",
     "teach",
+    "trajectory_recorder",
 ]
 
 Progress = Callable[[str, float], None]
@@ -60,6 +61,24 @@ class TeachConfig(BaseModel):
     frames: int = Field(16, ge=1)  # captures averaged into X_i(O) (once per task: 0.5 s at 30 fps)
     min_depth: float = Field(0.2, gt=0)
     max_depth: float = Field(1.5, gt=0)
+
+
+def trajectory_recorder(
+    t: Array, q: Array, rate_hz: float, gripper: Array | None = None
+) -> Recorder:
+    """A teach-in ``record`` source from a recorded joint trajectory (a person's freedrive
+    demonstration read from a bag or a file): ``t`` (N,) s, ``q`` (N, 6) rad, ``gripper``
+    (N,) in [0, 1] or None (open). Checked when called; times are taken from 0."""
+    t = np.asarray(t, dtype=float)
+    q = np.asarray(q, dtype=float)
+    if t.ndim != 1 or q.shape != (len(t), 6) or len(t) < 2:
+        raise InvalidInputError(f"need t (N,) and q (N, 6) with N >= 2, got {t.shape}, {q.shape}")
+    g = np.zeros(len(t)) if gripper is None else np.asarray(gripper, dtype=float)
+
+    def record() -> tuple[Array, Array, Array, float]:
+        return t - t[0], q.copy(), g.copy(), float(rate_hz)
+
+    return record
 
 
 def teach(

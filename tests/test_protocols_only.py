@@ -1,0 +1,152 @@
+"""The missions run over the robot protocols alone: the twin wrapped in objects that have
+nothing but the protocol methods (no ``SimWorld``, no truth, no extra attributes) teaches a
+task from a recorded joint trajectory, runs IPE + the adapted path, and grasps a ball. The
+truth judges from outside."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+import numpy as np
+import pytest
+
+from mmpa.robot.interfaces import Arm, Base, Camera, Gripper
+from mmpa.sim.error_model import ErrorModelConfig
+from mmpa.sim.world import SimWorld
+
+
+class OnlyArm:
+    __slots__ = ("_a",)
+
+    def __init__(self, arm) -> None:
+        self._a = arm
+
+    def joint_positions(self):
+        return self._a.joint_positions()
+
+    def move_joints(self, q, duration=None):
+        return self._a.move_joints(q, duration)
+
+    def follow(self, times, q_path, record_hz=None):
+        return self._a.follow(times, q_path, record_hz)
+
+    def command(self, q):
+        return self._a.command(q)
+
+
+class OnlyCamera:
+    __slots__ = ("_c",)
+
+    def __init__(self, camera) -> None:
+        self._c = camera
+
+    @property
+    def intrinsics(self):
+        return self._c.intrinsics
+
+    def capture(self):
+        return self._c.capture()
+
+
+class OnlyGripper:
+    __slots__ = ("_g",)
+
+    def __init__(self, gripper) -> None:
+        self._g = gripper
+
+    def open(self):
+        return self._g.open()
+
+    def close(self):
+        return self._g.close()
+
+    def width(self):
+        return self._g.width()
+
+
+class OnlyBase:
+    __slots__ = ("_b",)
+
+    def __init__(self, base) -> None:
+        self._b = base
+
+    def set_velocity(self, v, w):
+        return self._b.set_velocity(v, w)
+
+    def stop(self):
+        return self._b.stop()
+
+    def odometry(self):
+        return self._b.odometry()
+
+
+def test_teach_from_a_trajectory_then_ipe_over_protocols_only() -> None:
+    from mmpa.missions.mmpa import AutomationConfig, automate, teach, trajectory_recorder
+    from mmpa.planning import plan_joint_path, retime
+    from mmpa.robot.kinematics import fk
+    from mmpa.sim.operator import get_demonstration, sampling_joints
+
+    with SimWorld(site="1", errors=ErrorModelConfig(profile="reference")) as w:
+        arm, cam = OnlyArm(w.arm), OnlyCamera(w.camera)
+        assert isinstance(arm, Arm) and isinstance(cam, Camera)
+        q_sample = sampling_joints(w, get_demonstration("needle_site1"))
+        rb = w.nominal
+        # a person's demonstration, here a 5 cm tool line recorded as joints (e.g. a bag)
+        T0 = fk(rb.arm.dh, q_sample, rb.gripper.T_flange_tcp)
+        t = np.linspace(0.0, 2.0, 101)
+        poses = np.array([T0.copy() for _ in t])
+        poses[:, 2, 3] -= 0.05 * t / t[-1]
+        q = plan_joint_path(rb.arm, poses, q_sample, rb.gripper.T_flange_tcp)
+        task = teach(
+            "line",
+            "1",
+            arm=arm,
+            camera=cam,
+            robot=rb,
+            T_map_base_park=w.truth.T_map_base_link(),
+            q_sample=q_sample,
+            record=trajectory_recorder(t, retime(t, q, rb.arm).q, 50.0),
+        )
+        T_map_Bo = w.truth.T_map_arm_base()
+        w.reset(site="1", pose2d=w.truth.base_pose2d() + np.array([0.03, -0.02, 0.02]))
+        res = automate(
+            task,
+            arm=arm,
+            camera=cam,
+            gripper=OnlyGripper(w.gripper),
+            robot=rb,
+            cfg=AutomationConfig(execute=False),
+        )
+        assert res.ok, res.reason
+        truth = np.linalg.inv(w.truth.T_map_arm_base()) @ T_map_Bo
+        assert np.linalg.norm(res.ipe.dT_B[:3, 3] - truth[:3, 3]) < 2e-3
+
+
+def test_grasp_over_protocols_only() -> None:
+    from tests.test_servo_twin import _ball_under_the_look_view
+
+    from mmpa.experiments.grasp import SERVO_RESOLUTION, OracleDetector
+    from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+
+    with SimWorld(site="0") as w:
+        rb = _ball_under_the_look_view(w, 0.3)
+        top = w.truth.T_map_object("tennis_ball")[2, 3]
+        w.camera.set_resolution(*SERVO_RESOLUTION)
+        g = TrackingGrasp(OracleDetector(w), rb, GraspConfig())
+        base, grip = OnlyBase(w.base), OnlyGripper(w.gripper)
+        assert isinstance(base, Base) and isinstance(grip, Gripper)
+        res = g.run(
+            "tennis_ball", OnlyArm(w.arm), grip, OnlyCamera(w.camera), base, w.step,
+            lambda: w.time,
+        )  # fmt: skip
+        assert res.reason == "grasped", res.reason
+        w.step(1.0)
+        assert w.truth.T_map_object("tennis_ball")[2, 3] > top + 0.04  # held off the desk
+
+
+@pytest.mark.parametrize("cls", [OnlyArm, OnlyCamera, OnlyGripper, OnlyBase])
+def test_wrappers_expose_nothing_else(cls) -> None:
+    assert not hasattr(cls(None), "__dict__")  # __slots__: no world can hide in them
