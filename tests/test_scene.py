@@ -187,6 +187,89 @@ def test_malformed_scene_names_the_field(tmp_path, raw, mutate, expected):
         assert part in msg, f"{part!r} not in {msg!r}"
 
 
+# issue 22: bad numbers that reached MuJoCo (a crash inside it, or a body silently at NaN)
+# before; each is refused naming the field
+def _set(path: str, value: object):
+    def mutate(d: dict) -> None:
+        *head, last = path.split(".")
+        node = d
+        for k in head:
+            node = node[int(k)] if isinstance(node, list) else node[k]
+        if isinstance(node, list):
+            node[int(last)] = value
+        else:
+            node[last] = value
+
+    mutate.__name__ = f"{path}={value!r}"
+    return mutate
+
+
+def _same_reflector_twice(d: dict) -> None:
+    d["reflectors"]["positions"].append(list(d["reflectors"]["positions"][4]))
+
+
+def _overlapping_reflectors(d: dict) -> None:
+    x, y = d["reflectors"]["positions"][0]
+    d["reflectors"]["positions"].append([x + 0.05, y])  # radius 0.04: centres need 0.08 m
+
+
+@pytest.mark.parametrize(
+    ("mutate", "expected"),
+    [
+        (_set("walls.0.start", [float("nan"), 1.0]), ["walls.0.start.0", "finite"]),
+        (_set("walls.2.end", [1.0, float("inf")]), ["walls.2.end.1", "finite"]),
+        (_set("walls.1.thickness", 0.0), ["walls.1.thickness", "greater than 0"]),
+        (_set("walls.1.height", -1.0), ["walls.1.height", "greater than 0"]),
+        (_set("floor_size", [0.0, 8.0]), ["floor_size", "> 0 m"]),
+        (_set("reflectors.positions.3", [float("nan"), 0.0]), ["reflectors.positions.3.0"]),
+        (_set("reflectors.radius", float("nan")), ["reflectors.radius", "finite"]),
+        (_set("reflectors.radius", 0.0), ["reflectors.radius", "greater than 0"]),
+        (_same_reflector_twice, ["reflectors", "reflector 9", "same position as reflector 4"]),
+        (_overlapping_reflectors, ["reflectors", "reflector 9", "overlapping reflector 0"]),
+        (_set("workbenches.0.size", [1.2, -0.6, 0.72]), ["workbenches.0.size", "> 0 m"]),
+        (_set("workbenches.0.top_color", [1.2, 0.5, 0.5]), ["workbenches.0.top_color", "[0, 1]"]),
+        (_set("workbenches.0.items.0.color", [0.5, -0.1, 0.5]), ["items.0.color", "[0, 1]"]),
+        (_set("workbenches.0.items.0.size", [0.0, 0.1]), ["items.0.size", "> 0 m"]),
+        (_set("workbenches.0.items.0.xy", [float("nan"), 0.0]), ["items.0.xy.0", "finite"]),
+        (_set("grasp_objects.0.color", [0.2, 0.2, 255.0]), ["grasp_objects.0.color", "[0, 1]"]),
+        (_set("grasp_objects.0.size", [-0.02]), ["grasp_objects.0.size", "> 0 m"]),
+        (_set("grasp_objects.0.position", [0.0, float("nan"), 0.8]), ["grasp_objects.0.position"]),
+        (_set("sites.1.position", [float("nan"), 0.0, 0.0]), ["sites.1.position.0", "finite"]),
+    ],
+    ids=lambda v: getattr(v, "__name__", None) if callable(v) else "",
+)
+def test_bad_numbers_are_refused_before_mujoco(tmp_path, raw, mutate, expected):
+    data = copy.deepcopy(raw)
+    mutate(data)
+    path = _write(tmp_path, data)
+    with pytest.raises(ConfigError) as e:
+        load_scene(path)
+    msg = str(e.value)
+    assert str(path) in msg
+    for part in expected:
+        assert part in msg, f"{part!r} not in {msg!r}"
+
+
+def test_grasp_object_size_must_fit_its_kind(tmp_path, raw):
+    data = copy.deepcopy(raw)
+    obj = data["grasp_objects"][0]
+    obj["size"] = [0.02] if obj["kind"] in ("bottle", "cup", "stick") else [0.02, 0.05]
+    with pytest.raises(ConfigError, match=r"grasp_objects\.0: .*size is"):
+        load_scene(_write(tmp_path, data))
+
+
+def test_scene_alias_bomb_is_refused(tmp_path):
+    lines = ["a: &a [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]"]
+    for k in "bcdefghij":
+        prev = chr(ord(k) - 1)
+        lines.append(f"{k}: &{k} [*{prev}, *{prev}, *{prev}, *{prev}, *{prev}, *{prev}]")
+    p = tmp_path / "bomb.yaml"
+    p.write_text("\n".join(lines) + "\nname: bomb\n")
+    with pytest.raises(ConfigError, match=r"alias \*a is not accepted") as e:
+        load_scene(p)
+    assert str(p) in str(e.value)
+
+
 def test_unmodified_copy_loads(tmp_path, raw):
     """Control for the malformed cases: the dumped default document itself is fine."""
     scene = load_scene(_write(tmp_path, raw))

@@ -5,7 +5,10 @@ nobody edits XML by hand. Positions are metres in the ``map`` frame; angles in t
 degrees (fields end in ``_deg``) because people write this file. Desk items are placed in
 their desk's top-surface frame (x along the desk length, y along its depth, z up).
 
-A malformed file fails with :class:`mmpa.errors.ConfigError` naming the field.
+A malformed file fails with :class:`mmpa.errors.ConfigError` naming the field, before anything
+reaches MuJoCo: every number must be finite, sizes positive, colours in [0, 1], reflectors
+apart (their cylinders may not overlap). The YAML is read through :mod:`mmpa.yamlio` (no
+aliases, bounded size).
 """
 
 from __future__ import annotations
@@ -15,11 +18,11 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from mmpa.errors import ConfigError, UnknownNameError
 from mmpa.geometry import Array, quat_xyzw_to_R, wrap_angle
+from mmpa.yamlio import load_yaml_text
 
 __all__ = [
     "FIXED_KINDS",
@@ -41,7 +44,23 @@ Vec3 = tuple[float, float, float]
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: a NaN or infinite number anywhere in the scene is refused here;
+    # MuJoCo would accept it and fail later (or silently place a body at NaN)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+def _positive(v: tuple[float, ...] | None, what: str = "size") -> tuple[float, ...] | None:
+    """Every entry of a size > 0 (m)."""
+    if v is not None and any(x <= 0 for x in v):
+        raise ValueError(f"every {what} entry must be > 0 m, got {tuple(v)}")
+    return v
+
+
+def _colour(v: tuple[float, ...] | None) -> tuple[float, ...] | None:
+    """An RGB colour with each channel in [0, 1]."""
+    if v is not None and any(not 0.0 <= x <= 1.0 for x in v):
+        raise ValueError(f"colour channels must be in [0, 1], got {tuple(v)}")
+    return v
 
 
 class Wall(_Model):
@@ -72,6 +91,21 @@ class Reflectors(_Model):
         if len(v) < 3:
             raise ValueError(f"need at least 3 reflectors for trilateration, got {len(v)}")
         return v
+
+    @model_validator(mode="after")
+    def _apart(self) -> Reflectors:
+        p = np.asarray(self.positions, dtype=float)
+        d = np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1])
+        i, j = np.nonzero(np.triu(d < 2 * self.radius, k=1))
+        if len(i):
+            a, b = int(i[0]), int(j[0])
+            what = "the same position as" if d[a, b] < 1e-6 else "overlapping"
+            raise ValueError(
+                f"reflector {b} at {self.positions[b]} is {what} reflector {a} at "
+                f"{self.positions[a]} (centres {d[a, b]:.4g} m apart; cylinders of radius "
+                f"{self.radius} m need >= {2 * self.radius:.4g} m)"
+            )
+        return self
 
 
 class SiteConfig(_Model):
@@ -137,6 +171,20 @@ ItemKind = Literal[
 #: kinds that never move between teaching and repeating: the backboard and the task's target
 FIXED_KINDS = frozenset({"backboard", "dot"})
 
+#: (fewest, most) entries of a desk item's ``size`` that ``mmpa.sim.mjcf`` reads
+_DESK_ITEM_SIZE_LEN: dict[str, tuple[int, int | None]] = {
+    "backboard": (3, 3),
+    "box": (3, 3),
+    "poster": (2, None),
+    "logo_tape": (2, None),
+    "letter_tape": (2, None),
+    "valve_container": (2, None),
+    "cup": (2, None),
+    "bottle": (2, 2),
+    "small_bottle": (2, 2),
+    "reagent_bottle": (2, 2),
+}
+
 
 class DeskItem(_Model):
     """Something on a desk, in the desk-top frame.
@@ -159,10 +207,26 @@ class DeskItem(_Model):
     loose: bool = False
     text: str | None = None  # for letter tapes; None: seeded random letters
 
+    @field_validator("size")
+    @classmethod
+    def _size_positive(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        return _positive(v)
+
+    @field_validator("color")
+    @classmethod
+    def _color_range(cls, v: Vec3 | None) -> Vec3 | None:
+        return _colour(v)  # type: ignore[return-value]
+
     @model_validator(mode="after")
     def _fixed_kinds_stay(self) -> DeskItem:
         if self.loose and self.kind in FIXED_KINDS:
             raise ValueError(f"a {self.kind} never moves: it cannot be loose")
+        need = _DESK_ITEM_SIZE_LEN.get(self.kind, (1, None))
+        if self.size is not None and not (
+            need[0] <= len(self.size) and (need[1] is None or len(self.size) <= need[1])
+        ):
+            n = f"{need[0]}" if need[0] == need[1] else f"{need[0]} or more"
+            raise ValueError(f"a {self.kind} size has {n} entries, got {len(self.size)}")
         return self
 
 
@@ -175,6 +239,16 @@ class Workbench(_Model):
     size: Vec3 = (1.2, 0.6, 0.72)  # length, depth, height
     top_color: Vec3 | None = None  # RGB in [0, 1] for a plain top; None: wood texture
     items: list[DeskItem] = Field(default_factory=list)
+
+    @field_validator("size")
+    @classmethod
+    def _size_positive(cls, v: Vec3) -> Vec3:
+        return _positive(v)  # type: ignore[return-value]
+
+    @field_validator("top_color")
+    @classmethod
+    def _color_range(cls, v: Vec3 | None) -> Vec3 | None:
+        return _colour(v)  # type: ignore[return-value]
 
     def item_name(self, j: int) -> str:
         """The model name of item ``j``: its ``name``, else ``<bench>_<kind>_<j>``."""
@@ -213,6 +287,26 @@ class GraspObject(_Model):
     label: tuple[float, float, float] | None = None
     cap: tuple[float, float, float] | None = None
 
+    @field_validator("color", "label", "cap")
+    @classmethod
+    def _color_range(cls, v: Vec3 | None) -> Vec3 | None:
+        return _colour(v)  # type: ignore[return-value]
+
+    @field_validator("size")
+    @classmethod
+    def _size_positive(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        return _positive(v)  # type: ignore[return-value]
+
+    @model_validator(mode="after")
+    def _size_fits_kind(self) -> GraspObject:
+        need = 1 if self.kind in ("cube", "ball") else 2
+        if len(self.size) != need:
+            what = "(half edge,)" if self.kind == "cube" else "(radius,)"
+            if need == 2:
+                what = "(radius, half height)"
+            raise ValueError(f"a {self.kind} size is {what}, got {len(self.size)} entries")
+        return self
+
 
 class FiducialArtifact(_Model):
     """Paper 002 calibration artifact: retroreflectors at the bottom of collimator tubes.
@@ -239,6 +333,12 @@ class SceneConfig(_Model):
     floor_center: Vec2 = (0.0, 0.0)
     walls: list[Wall]
     reflectors: Reflectors
+
+    @field_validator("floor_size")
+    @classmethod
+    def _floor_positive(cls, v: Vec2) -> Vec2:
+        return _positive(v)  # type: ignore[return-value]
+
     sites: dict[str, SiteConfig]
     speed_bump: SpeedBump | None = None
     workbenches: list[Workbench] = Field(default_factory=list)
@@ -303,14 +403,14 @@ def load_scene(path: str | Path | None = None) -> SceneConfig:
     """Load a scene YAML (default: the built-in world)."""
     path = Path(path) if path is not None else default_scene_path()
     try:
-        text = path.read_text()
+        raw = path.read_bytes()
     except OSError as e:
         raise ConfigError(f"cannot read scene file {path}: {e.strerror}") from None
     try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML: {e}") from None
-    return parse_scene(data, str(path))
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    return parse_scene(load_yaml_text(text, str(path)), str(path))
 
 
 def default_scene_path() -> Path:
