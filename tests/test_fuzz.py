@@ -151,3 +151,52 @@ def test_error_model_fields_refuse_nan_and_negative(bad: float) -> None:
 
     with pytest.raises((ValueError, MMPAError)):
         ErrorModelConfig.model_validate({"camera": {"depth_scale_sigma": bad}})
+
+
+MAP_KEYS = [
+    "image",
+    "resolution",
+    "origin",
+    "occupied_thresh",
+    "free_thresh",
+    "negate",
+    "mode",
+    "reflectors",
+]
+
+
+@FUZZ
+@given(
+    st.dictionaries(st.sampled_from(MAP_KEYS), yaml_docs, max_size=8),
+    st.binary(min_size=0, max_size=64),
+    st.booleans(),
+)
+def test_map_loader_never_escapes(tmp_path_factory, doc: dict, pixels: bytes, good_image) -> None:
+    from mmpa.localization.maps import load_map
+
+    d = tmp_path_factory.mktemp("map")
+    if good_image:  # a valid 4 x 4 PGM so that the YAML fields get exercised
+        (d / "m.pgm").write_bytes(b"P5\n4 4\n255\n" + (pixels * 16)[:16].ljust(16, b"\xfe"))
+    else:  # whatever bytes: a corrupt image
+        (d / "m.pgm").write_bytes(pixels)
+    doc = {"image": "m.pgm", "resolution": 0.05, "origin": [0.0, 0.0, 0.0], **doc}
+    (d / "map.yaml").write_text(_dump(doc))
+    try:
+        grid = load_map(d / "map.yaml")
+    except ConfigError:
+        return
+    assert np.all(np.isin(grid.data, np.arange(-1, 101)))
+
+
+@FUZZ
+@given(st.lists(st.dictionaries(st.sampled_from(["id", "x", "y", "radius"]), scalars), max_size=5))
+def test_reflector_map_never_escapes(tmp_path_factory, entries: list) -> None:
+    from mmpa.localization.reflector_map import load_reflector_map
+
+    p = tmp_path_factory.mktemp("rm") / "reflectors.yaml"
+    p.write_text(_dump({"frame_id": "map", "reflectors": entries}))
+    try:
+        rm = load_reflector_map(p)
+    except ConfigError:
+        return
+    assert np.all(np.isfinite(rm.xy)) and np.all(rm.radius > 0)
