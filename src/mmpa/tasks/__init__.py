@@ -16,12 +16,20 @@ from mmpa.errors import (
 )
 from mmpa.tasks.bundle import read_bundle, write_bundle
 from mmpa.tasks.model import FORMAT_VERSION, Task, TaskInfo, ToolPath
-from mmpa.tasks.store import SCHEMA_VERSION, TaskStore, default_store_path
+from mmpa.tasks.store import (
+    DEFAULT_BUSY_TIMEOUT_S,
+    SCHEMA_VERSION,
+    StoreLockedError,
+    TaskStore,
+    default_store_path,
+)
 
 __all__ = [
+    "DEFAULT_BUSY_TIMEOUT_S",
     "FORMAT_VERSION",
     "SCHEMA_VERSION",
     "CorruptTaskError",
+    "StoreLockedError",
     "Task",
     "TaskExistsError",
     "TaskInfo",

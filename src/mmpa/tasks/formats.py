@@ -16,7 +16,8 @@ Decisions (DESIGN.md "Storage"):
   is bit-exact (a quaternion is not). Floats are written with ``repr`` (shortest exact).
   On import the quaternion must agree with the matrix.
 - Header: the task's metadata as canonical JSON (sorted keys, repr floats, no NaN) whose
-  SHA-256 covers every field that is not in a blob, including the blob checksums.
+  SHA-256 covers every field that is not in a blob, including the blob checksums and, from
+  format version 2, the path duration (what ``mmpa tasks list`` shows without the blobs).
 """
 
 from __future__ import annotations
@@ -310,8 +311,10 @@ def csv_to_path(data: bytes, rate_hz: float, source: str = "path.csv") -> ToolPa
 
 
 def header_record(task: Task, cloud_sha256: str, path_sha256: str) -> dict[str, Any]:
-    """Every non-blob field of ``task`` plus the blob checksums, as JSON-able values."""
-    return {
+    """Every non-blob field of ``task`` plus the blob checksums, as JSON-able values.
+
+    The record of ``task.format_version``: version 1 lacks ``duration`` (s)."""
+    rec: dict[str, Any] = {
         "format_version": task.format_version,
         "name": task.name,
         "site": task.site,
@@ -330,6 +333,9 @@ def header_record(task: Task, cloud_sha256: str, path_sha256: str) -> dict[str, 
         "cloud_sha256": cloud_sha256,
         "path_sha256": path_sha256,
     }
+    if task.format_version >= 2:
+        rec["duration"] = task.path.duration
+    return rec
 
 
 def header_digest(record: dict[str, Any]) -> str:

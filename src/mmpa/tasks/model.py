@@ -24,8 +24,11 @@ from mmpa.robot.interfaces import PointCloud
 __all__ = ["FORMAT_VERSION", "NAME_PATTERN", "Task", "TaskInfo", "ToolPath"]
 
 #: Version of the task record (fields and their meaning). Bump on any change; readers refuse
-#: newer versions and migrate older ones.
-FORMAT_VERSION = 1
+#: newer versions and migrate older ones. History: 1 the first; 2 ``header_sha256`` also
+#: covers the path duration (``has_colors`` was covered from 1, but the store now also checks
+#: the column against the cloud). A version-1 record is verified by the version-1 rules and
+#: read as a version-2 task (no field changed meaning).
+FORMAT_VERSION = 2
 #: Allowed task names: they become file and directory names and CLI arguments.
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_.-]+")
 _NAME_MAX = 128

@@ -16,15 +16,21 @@ blob checksums), so an edited row, blob or a missing blob row is refused with
 a failure or a crash at any point leaves the store as it was. Migrations live in
 :data:`MIGRATIONS` (version -> SQL statements) and run in order, each in a transaction; a
 store written by a newer mmpa raises :class:`~mmpa.errors.UnsupportedVersionError`.
+
+No SQLite exception leaves this module: a damaged page, a dropped table or column (checked
+on open) or a value of the wrong type in a column raise CorruptTaskError naming the file
+(and the task and column); a lock held by another process for longer than the busy timeout
+raises :class:`StoreLockedError`. Opening an up-to-date store takes no write lock.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import sqlite3
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from datetime import UTC, datetime
 from pathlib import Path
 from types import TracebackType
@@ -33,6 +39,7 @@ from typing import Any
 from mmpa.errors import (
     CorruptTaskError,
     InvalidInputError,
+    MMPAError,
     TaskExistsError,
     TaskNotFoundError,
     UnsupportedVersionError,
@@ -51,9 +58,18 @@ from mmpa.tasks.formats import (
 )
 from mmpa.tasks.model import FORMAT_VERSION, Task, TaskInfo
 
-__all__ = ["MIGRATIONS", "SCHEMA_VERSION", "TaskStore", "default_store_path"]
+__all__ = [
+    "DEFAULT_BUSY_TIMEOUT_S",
+    "MIGRATIONS",
+    "SCHEMA_VERSION",
+    "StoreLockedError",
+    "TaskStore",
+    "default_store_path",
+]
 
 SCHEMA_VERSION = 1
+#: How long (s) a call waits for another process's lock before StoreLockedError.
+DEFAULT_BUSY_TIMEOUT_S = 30.0
 MIGRATIONS: dict[int, tuple[str, ...]] = {
     1: (
         """CREATE TABLE schema_version (
@@ -112,31 +128,110 @@ def _mmpa_version() -> str:
     return __version__
 
 
+#: Columns each table must have (a later schema may add more); checked on open.
+_COLUMNS: dict[str, tuple[str, ...]] = {
+    "schema_version": ("version", "applied", "mmpa_version"),
+    "tasks": (
+        "name",
+        "site",
+        "robot_id",
+        "created",
+        "description",
+        "format_version",
+        "meta_json",
+        "T_map_base_park",
+        "q_sample",
+        "T_arm_base_camera",
+        "rate_hz",
+        "n_points",
+        "n_waypoints",
+        "duration",
+        "has_colors",
+        "cloud_frame",
+        "cloud_sha256",
+        "path_sha256",
+        "header_sha256",
+    ),
+    "clouds": ("task", "ply"),
+    "paths": ("task", "t", "q", "T_arm_base_tool", "gripper"),
+}
+_TEXT = ("name", "site", "robot_id", "created", "description", "cloud_frame")
+_TEXT += ("cloud_sha256", "path_sha256", "header_sha256")
+_JSON_COLS = {
+    "meta_json": "meta",
+    "T_map_base_park": "T_map_base_park",
+    "q_sample": "q_sample",
+    "T_arm_base_camera": "T_arm_base_camera",
+}
+_SQL_TYPE = {int: "integer", float: "real", str: "text", bytes: "blob", type(None): "NULL"}
+
+
+def _busy_timeout(timeout: float | None) -> float:
+    """``timeout`` s, else ``$MMPA_TASKS_BUSY_TIMEOUT``, else :data:`DEFAULT_BUSY_TIMEOUT_S`."""
+    source = "timeout"
+    if timeout is None:
+        env = os.environ.get("MMPA_TASKS_BUSY_TIMEOUT")
+        if not env:
+            return DEFAULT_BUSY_TIMEOUT_S
+        source = "$MMPA_TASKS_BUSY_TIMEOUT"
+        try:
+            timeout = float(env)
+        except ValueError:
+            raise InvalidInputError(f"{source} must be a number of seconds, got {env!r}") from None
+    if isinstance(timeout, bool) or not isinstance(timeout, int | float):
+        raise InvalidInputError(f"{source} must be a number of seconds, got {timeout!r}")
+    if not (math.isfinite(timeout) and timeout >= 0.0):
+        raise InvalidInputError(f"{source} must be finite and >= 0 s, got {timeout!r}")
+    return float(timeout)
+
+
+def _is_locked(e: sqlite3.Error) -> bool:
+    name = getattr(e, "sqlite_errorname", "") or ""
+    return name.startswith(("SQLITE_BUSY", "SQLITE_LOCKED")) or "is locked" in str(e)
+
+
+class StoreLockedError(MMPAError):
+    """Another process holds the task store's lock for longer than the busy timeout."""
+
+
 class TaskStore:
     """Taught tasks in one SQLite file; ``path`` None -> :func:`default_store_path`.
 
     Creates the parent directories and the schema on first use. ``":memory:"`` gives a
     private in-memory store. Use as a context manager or call :meth:`close`.
+
+    ``timeout`` (s; None: ``$MMPA_TASKS_BUSY_TIMEOUT``, else 30) is how long a call waits
+    for another process's lock before it raises :class:`StoreLockedError`. Every SQLite
+    error is reported as an :class:`~mmpa.errors.MMPAError` naming the file: a damaged
+    file, a dropped table or column, or a column of the wrong type raise
+    :class:`~mmpa.errors.CorruptTaskError`.
     """
 
-    def __init__(self, path: str | Path | None = None) -> None:
+    def __init__(self, path: str | Path | None = None, *, timeout: float | None = None) -> None:
+        self.timeout = _busy_timeout(timeout)
         if path is None:
             path = default_store_path()
         self.path = path if str(path) == ":memory:" else Path(path).expanduser()
+        self._con: sqlite3.Connection | None = None
         if isinstance(self.path, Path):
             if self.path.is_dir():
                 raise InvalidInputError(f"task store {self.path} is a directory, not a file")
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._con: sqlite3.Connection | None = sqlite3.connect(
-            str(self.path), isolation_level=None, timeout=30.0
-        )
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                raise InvalidInputError(
+                    f"cannot create the folder of task store {self.path}: {e.strerror or e}"
+                ) from None
+        try:
+            self._con = sqlite3.connect(str(self.path), isolation_level=None, timeout=self.timeout)
+        except sqlite3.Error as e:
+            raise InvalidInputError(f"cannot open task store {self.path}: {e}") from None
         self._con.row_factory = sqlite3.Row
         try:
-            self._con.execute("PRAGMA foreign_keys = ON")
-            self._migrate()
-        except sqlite3.DatabaseError as e:
-            self.close()
-            raise CorruptTaskError(f"{self.path}: not a usable SQLite task store ({e})") from None
+            with self._guard("not a usable SQLite task store"):
+                self._con.execute("PRAGMA foreign_keys = ON")
+                self._migrate()
+                self._check_schema()
         except BaseException:
             self.close()
             raise
@@ -160,14 +255,40 @@ class TaskStore:
     def close(self) -> None:
         """Close the connection (idempotent)."""
         if self._con is not None:
-            self._con.close()
-            self._con = None
+            con, self._con = self._con, None
+            with suppress(sqlite3.Error):
+                con.close()
 
     @property
     def con(self) -> sqlite3.Connection:
         if self._con is None:
             raise InvalidInputError(f"task store {self.path} is closed")
         return self._con
+
+    def _sql_error(self, e: sqlite3.Error, what: str) -> MMPAError:
+        """The MMPAError for SQLite's ``e`` raised while doing ``what``."""
+        if _is_locked(e):
+            return StoreLockedError(
+                f"task store {self.path} is locked by another process (waited "
+                f"{self.timeout:g} s); try again when it is done (SQLite: {e})"
+            )
+        return CorruptTaskError(
+            f"{self.path}: {what} (SQLite: {e}); the file is damaged or its tables were "
+            "edited outside mmpa"
+        )
+
+    @contextmanager
+    def _guard(self, what: str) -> Iterator[None]:
+        """Re-raise any ``sqlite3.Error`` of the block as :meth:`_sql_error` (no traceback)."""
+        try:
+            yield
+        except sqlite3.Error as e:
+            raise self._sql_error(e, what) from None
+
+    def _rollback(self) -> None:
+        if self._con is not None and self._con.in_transaction:
+            with suppress(sqlite3.Error):
+                self._con.execute("ROLLBACK")
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
@@ -177,29 +298,53 @@ class TaskStore:
         try:
             yield con
         except BaseException:
-            con.execute("ROLLBACK")
+            self._rollback()
+            raise
+        con.execute("COMMIT")
+
+    @contextmanager
+    def _snapshot(self) -> Iterator[sqlite3.Connection]:
+        """One read transaction: every SELECT of the block sees the same state."""
+        con = self.con
+        con.execute("BEGIN")
+        try:
+            yield con
+        except BaseException:
+            self._rollback()
             raise
         con.execute("COMMIT")
 
     def schema_version(self) -> int:
         """The schema version of the open store."""
-        row = self.con.execute("SELECT MAX(version) FROM schema_version").fetchone()
-        return int(row[0] or 0)
+        with self._guard("cannot read the schema version"):
+            return self._read_version()
 
-    def _migrate(self) -> None:
-        with self._tx() as con:
-            tables = {
-                r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='table'")
-            }
-            if "schema_version" in tables:
-                current = self.schema_version()
-            elif tables:
+    def _read_version(self) -> int:
+        tables = {
+            r[0] for r in self.con.execute("SELECT name FROM sqlite_master WHERE type='table'")
+        }
+        if "schema_version" not in tables:
+            if tables:
                 raise CorruptTaskError(
                     f"{self.path} is an SQLite database but not an mmpa task store "
                     f"(tables: {', '.join(sorted(tables))}, no schema_version)"
                 )
-            else:
-                current = 0
+            return 0
+        value = self.con.execute("SELECT MAX(version) FROM schema_version").fetchone()[0]
+        if value is None:
+            return 0
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise CorruptTaskError(
+                f"{self.path}: schema_version.version holds {value!r}, not an integer"
+            )
+        return value
+
+    def _migrate(self) -> None:
+        current = self._read_version()  # a read: an up-to-date store needs no write lock
+        if current == SCHEMA_VERSION:
+            return
+        with self._tx() as con:
+            current = self._read_version()  # again, under the write lock
             if current > SCHEMA_VERSION:
                 raise UnsupportedVersionError(
                     f"task store {self.path} has schema version {current}, newer than this "
@@ -213,14 +358,28 @@ class TaskStore:
                     (v, datetime.now(UTC).isoformat(), _mmpa_version()),
                 )
 
+    def _check_schema(self) -> None:
+        """CorruptTaskError naming any table or column the store lacks."""
+        for table, want in _COLUMNS.items():
+            have = {r[1] for r in self.con.execute(f"PRAGMA table_info({table})")}
+            if not have:
+                raise CorruptTaskError(f"{self.path}: table {table!r} is missing")
+            lack = [c for c in want if c not in have]
+            if lack:
+                raise CorruptTaskError(
+                    f"{self.path}: table {table!r} lacks column(s) {', '.join(lack)}"
+                )
+
     # ------------------------------------------------------------------------------- tasks
 
     def names(self) -> list[str]:
         """Stored task names, sorted."""
-        return [r[0] for r in self.con.execute("SELECT name FROM tasks ORDER BY name")]
+        with self._guard("cannot read the task names"):
+            return [r[0] for r in self.con.execute("SELECT name FROM tasks ORDER BY name")]
 
     def __contains__(self, name: object) -> bool:
-        row = self.con.execute("SELECT 1 FROM tasks WHERE name = ?", (name,)).fetchone()
+        with self._guard("cannot look up a task"):
+            row = self.con.execute("SELECT 1 FROM tasks WHERE name = ?", (name,)).fetchone()
         return row is not None
 
     def _not_found(self, name: str) -> TaskNotFoundError:
@@ -231,7 +390,23 @@ class TaskStore:
         ``overwrite``. On any failure the store keeps what it had (the old task included)."""
         if not isinstance(task, Task):
             raise InvalidInputError(f"save() needs a Task, got {type(task).__name__}")
-        with self._tx() as con:
+        blobs = path_blobs(task.path)
+        ply = cloud_to_ply(task.cloud)
+        rec = header_record(task, sha256(ply), path_digest(blobs))
+        values = {
+            **{k: rec[k] for k in _TEXT if k in rec},
+            "format_version": rec["format_version"],
+            **{col: json.dumps(rec[key], **_JSON) for col, key in _JSON_COLS.items()},
+            "rate_hz": rec["rate_hz"],
+            "n_points": rec["n_points"],
+            "n_waypoints": rec["n_waypoints"],
+            "duration": task.path.duration,
+            "has_colors": int(rec["has_colors"]),
+            "header_sha256": header_digest(rec),
+        }
+        cols = _COLUMNS["tasks"]
+        insert = f"INSERT INTO tasks ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})"
+        with self._guard(f"cannot save task {task.name!r}"), self._tx() as con:
             if con.execute("SELECT 1 FROM tasks WHERE name = ?", (task.name,)).fetchone():
                 if not overwrite:
                     raise TaskExistsError(
@@ -239,109 +414,122 @@ class TaskStore:
                         "overwrite=True (CLI: --overwrite) or delete it first"
                     )
                 con.execute("DELETE FROM tasks WHERE name = ?", (task.name,))
-            blobs = path_blobs(task.path)
             con.execute(
-                "INSERT INTO paths VALUES (?, ?, ?, ?, ?)",
+                "INSERT INTO paths (task, t, q, T_arm_base_tool, gripper) VALUES (?, ?, ?, ?, ?)",
                 (task.name, blobs["t"], blobs["q"], blobs["T_arm_base_tool"], blobs["gripper"]),
             )
-            ply = cloud_to_ply(task.cloud)
-            con.execute("INSERT INTO clouds VALUES (?, ?)", (task.name, ply))
-            rec = header_record(task, sha256(ply), path_digest(blobs))
-            con.execute(
-                "INSERT INTO tasks VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
-                (
-                    rec["name"],
-                    rec["site"],
-                    rec["robot_id"],
-                    rec["created"],
-                    rec["description"],
-                    rec["format_version"],
-                    json.dumps(rec["meta"], sort_keys=True, **_JSON),
-                    json.dumps(rec["T_map_base_park"], **_JSON),
-                    json.dumps(rec["q_sample"], **_JSON),
-                    json.dumps(rec["T_arm_base_camera"], **_JSON),
-                    rec["rate_hz"],
-                    rec["n_points"],
-                    rec["n_waypoints"],
-                    task.path.duration,
-                    int(rec["has_colors"]),
-                    rec["cloud_frame"],
-                    rec["cloud_sha256"],
-                    rec["path_sha256"],
-                    header_digest(rec),
-                ),
-            )
+            con.execute("INSERT INTO clouds (task, ply) VALUES (?, ?)", (task.name, ply))
+            con.execute(insert, tuple(values[c] for c in cols))
 
-    def load(self, name: str) -> Task:
-        """The task ``name``, every checksum verified (TaskNotFoundError, CorruptTaskError)."""
-        con = self.con
-        con.execute("BEGIN")  # one consistent snapshot of the three rows
-        try:
-            row = con.execute("SELECT * FROM tasks WHERE name = ?", (name,)).fetchone()
-            cloud_row = con.execute("SELECT ply FROM clouds WHERE task = ?", (name,)).fetchone()
-            path_row = con.execute("SELECT * FROM paths WHERE task = ?", (name,)).fetchone()
-        finally:
-            con.execute("COMMIT")
-        if row is None:
-            raise self._not_found(name)
-        where = f"task {name!r} in {self.path}"
-        if row["format_version"] > FORMAT_VERSION:
+    def _record(self, row: sqlite3.Row, where: str) -> dict[str, Any]:
+        """The header record of a ``tasks`` row, every column type-checked and
+        ``header_sha256`` verified; CorruptTaskError / UnsupportedVersionError naming the
+        column."""
+
+        def bad(col: str, want: str) -> CorruptTaskError:
+            v = row[col]
+            kind = _SQL_TYPE.get(type(v), type(v).__name__)
+            shown = repr(v) if len(repr(v)) <= 40 else repr(v)[:40] + "..."
+            return CorruptTaskError(f"{where}: column tasks.{col} holds {shown} ({kind}), {want}")
+
+        def integer(col: str) -> int:
+            v = row[col]
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise bad(col, "expected an integer")
+            return v
+
+        def real(col: str) -> float:
+            v = row[col]
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise bad(col, "expected a finite number")
+            return float(v)
+
+        version = integer("format_version")
+        if version > FORMAT_VERSION:
             raise UnsupportedVersionError(
-                f"{where} has format version {row['format_version']}, newer than this mmpa "
-                f"reads ({FORMAT_VERSION}); upgrade mmpa"
+                f"{where} has format version {version}, newer than this mmpa reads "
+                f"({FORMAT_VERSION}); upgrade mmpa"
             )
-        if cloud_row is None or path_row is None:
-            missing = "clouds" if cloud_row is None else "paths"
-            raise CorruptTaskError(f"{where}: its row in table {missing!r} is missing")
-        ply = bytes(cloud_row["ply"])
-        got = sha256(ply)
-        if got != row["cloud_sha256"]:
-            raise CorruptTaskError(
-                f"{where}: cloud (clouds.ply, {len(ply)} bytes) SHA-256 mismatch: stored "
-                f"{row['cloud_sha256'][:16]}..., computed {got[:16]}..."
-            )
-        blobs = {
-            k: None if path_row[k] is None else bytes(path_row[k])
-            for k in ("t", "q", "T_arm_base_tool", "gripper")
-        }
-        got = path_digest(blobs)
-        if got != row["path_sha256"]:
-            raise CorruptTaskError(
-                f"{where}: path arrays (paths.t/q/T_arm_base_tool/gripper) SHA-256 mismatch: "
-                f"stored {row['path_sha256'][:16]}..., computed {got[:16]}..."
-            )
+        if version < 1:
+            raise bad("format_version", f"expected 1..{FORMAT_VERSION}")
+        rec: dict[str, Any] = {"format_version": version}
+        for col in _TEXT:
+            if not isinstance(row[col], str):
+                raise bad(col, "expected text")
+            rec[col] = row[col]
+        for col, key in _JSON_COLS.items():
+            try:
+                rec[key] = json.loads(row[col])
+            except (TypeError, ValueError):
+                raise bad(col, "expected JSON text") from None
+        rec["rate_hz"] = real("rate_hz")
+        rec["n_points"] = integer("n_points")
+        rec["n_waypoints"] = integer("n_waypoints")
+        if integer("has_colors") not in (0, 1):
+            raise bad("has_colors", "expected 0 or 1")
+        rec["has_colors"] = bool(row["has_colors"])
+        duration = real("duration")
+        if version >= 2:
+            rec["duration"] = duration
+        header = rec.pop("header_sha256")
         try:
-            rec: dict[str, Any] = {
-                "format_version": row["format_version"],
-                "name": row["name"],
-                "site": row["site"],
-                "robot_id": row["robot_id"],
-                "created": row["created"],
-                "description": row["description"],
-                "meta": json.loads(row["meta_json"]),
-                "T_map_base_park": json.loads(row["T_map_base_park"]),
-                "q_sample": json.loads(row["q_sample"]),
-                "T_arm_base_camera": json.loads(row["T_arm_base_camera"]),
-                "rate_hz": row["rate_hz"],
-                "n_points": row["n_points"],
-                "n_waypoints": row["n_waypoints"],
-                "has_colors": bool(row["has_colors"]),
-                "cloud_frame": row["cloud_frame"],
-                "cloud_sha256": row["cloud_sha256"],
-                "path_sha256": row["path_sha256"],
-            }
-            ok = header_digest(rec) == row["header_sha256"]
-        except (TypeError, ValueError):
+            ok = header_digest(rec) == header
+        except (TypeError, ValueError):  # a NaN in the JSON columns
             ok = False
         if not ok:
             raise CorruptTaskError(
                 f"{where}: metadata (table 'tasks') does not match its header_sha256; "
                 "a column was altered"
             )
+        rec["duration"] = duration
+        return rec
+
+    def load(self, name: str) -> Task:
+        """The task ``name``, every checksum verified (TaskNotFoundError, CorruptTaskError,
+        UnsupportedVersionError, StoreLockedError)."""
+        with self._guard(f"cannot read task {name!r}"), self._snapshot() as con:
+            row = con.execute("SELECT * FROM tasks WHERE name = ?", (name,)).fetchone()
+            cloud_row = con.execute("SELECT ply FROM clouds WHERE task = ?", (name,)).fetchone()
+            path_row = con.execute("SELECT * FROM paths WHERE task = ?", (name,)).fetchone()
+        if row is None:
+            raise self._not_found(name)
+        where = f"task {name!r} in {self.path}"
+        rec = self._record(row, where)
+        if cloud_row is None or path_row is None:
+            missing = "clouds" if cloud_row is None else "paths"
+            raise CorruptTaskError(f"{where}: its row in table {missing!r} is missing")
+        if not isinstance(cloud_row["ply"], bytes):
+            raise CorruptTaskError(f"{where}: clouds.ply is not a blob")
+        ply = cloud_row["ply"]
+        got = sha256(ply)
+        if got != rec["cloud_sha256"]:
+            raise CorruptTaskError(
+                f"{where}: cloud (clouds.ply, {len(ply)} bytes) SHA-256 mismatch: stored "
+                f"{rec['cloud_sha256'][:16]}..., computed {got[:16]}..."
+            )
+        blobs: dict[str, bytes | None] = {}
+        for k in ("t", "q", "T_arm_base_tool", "gripper"):
+            v = path_row[k]
+            if v is not None and not isinstance(v, bytes):
+                raise CorruptTaskError(f"{where}: paths.{k} is not a blob")
+            blobs[k] = v
+        got = path_digest(blobs)
+        if got != rec["path_sha256"]:
+            raise CorruptTaskError(
+                f"{where}: path arrays (paths.t/q/T_arm_base_tool/gripper) SHA-256 mismatch: "
+                f"stored {rec['path_sha256'][:16]}..., computed {got[:16]}..."
+            )
         path = path_from_blobs(blobs, rec["n_waypoints"], rec["rate_hz"], f"{where}: paths")
         cloud = ply_to_cloud(ply, rec["cloud_frame"], f"{where}: clouds.ply")
-        if len(cloud) != rec["n_points"] or (cloud.colors is not None) != rec["has_colors"]:
-            raise CorruptTaskError(f"{where}: cloud does not match n_points/has_colors")
+        for col, stored, actual in (
+            ("n_points", rec["n_points"], len(cloud)),
+            ("has_colors", rec["has_colors"], cloud.colors is not None),
+            ("duration", rec["duration"], path.duration),
+        ):
+            if stored != actual:
+                raise CorruptTaskError(
+                    f"{where}: column tasks.{col} = {stored!r} but the stored data give {actual!r}"
+                )
         try:
             return Task(
                 name=rec["name"],
@@ -355,43 +543,41 @@ class TaskStore:
                 created=parse_created(rec["created"], where),
                 description=rec["description"],
                 meta=rec["meta"],
-                format_version=rec["format_version"],
+                format_version=FORMAT_VERSION,  # older records are read as the current one
             )
         except InvalidInputError as e:
             raise CorruptTaskError(f"{where}: {e}") from None
 
     def list(self) -> list[TaskInfo]:
-        """A summary of every task, sorted by name (blobs are not read or verified)."""
-        rows = self.con.execute(
-            "SELECT name, site, created, n_points, n_waypoints, duration, robot_id, "
-            "description, has_colors, rate_hz FROM tasks ORDER BY name"
-        ).fetchall()
+        """A summary of every task, sorted by name. Blobs are not read; each row's types and
+        ``header_sha256`` are verified (CorruptTaskError naming the task and column)."""
+        with self._guard("cannot list the tasks"):
+            rows = self.con.execute("SELECT * FROM tasks ORDER BY name").fetchall()
         out = []
         for r in rows:
-            try:
-                created = datetime.fromisoformat(r["created"])
-            except (TypeError, ValueError):
-                created = datetime.fromtimestamp(0, UTC)
+            name = r["name"]
+            rec = self._record(r, f"task {name!r} in {self.path}")
             out.append(
                 TaskInfo(
-                    name=r["name"],
-                    site=r["site"],
-                    created=created,
-                    n_points=int(r["n_points"]),
-                    n_waypoints=int(r["n_waypoints"]),
-                    duration=float(r["duration"]),
-                    robot_id=r["robot_id"],
-                    description=r["description"],
-                    has_colors=bool(r["has_colors"]),
-                    rate_hz=float(r["rate_hz"]),
+                    name=rec["name"],
+                    site=rec["site"],
+                    created=parse_created(rec["created"], f"task {name!r} in {self.path}"),
+                    n_points=rec["n_points"],
+                    n_waypoints=rec["n_waypoints"],
+                    duration=rec["duration"],
+                    robot_id=rec["robot_id"],
+                    description=rec["description"],
+                    has_colors=rec["has_colors"],
+                    rate_hz=rec["rate_hz"],
                 )
             )
         return out
 
     def delete(self, name: str) -> None:
         """Remove ``name`` and its blobs in one transaction (TaskNotFoundError if absent)."""
-        with self._tx() as con:
-            if con.execute("DELETE FROM tasks WHERE name = ?", (name,)).rowcount == 0:
+        with self._guard(f"cannot delete task {name!r}"), self._tx() as con:
+            deleted = con.execute("DELETE FROM tasks WHERE name = ?", (name,)).rowcount
+            if deleted == 0:
                 raise self._not_found(name)
 
     def export(self, name: str, directory: str | Path, *, overwrite: bool = False) -> Path:
