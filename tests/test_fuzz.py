@@ -200,3 +200,37 @@ def test_reflector_map_never_escapes(tmp_path_factory, entries: list) -> None:
     except ConfigError:
         return
     assert np.all(np.isfinite(rm.xy)) and np.all(rm.radius > 0)
+
+
+def _small_task():
+    from mmpa.robot.description import ArmDescription
+    from mmpa.robot.interfaces import PointCloud
+    from mmpa.robot.kinematics import fk
+    from mmpa.tasks import Task, ToolPath
+
+    arm = ArmDescription()
+    q = np.tile(np.array(arm.home), (5, 1))
+    T = np.array([fk(arm.dh, qi) for qi in q])
+    rng = np.random.default_rng(0)
+    cloud = PointCloud(rng.normal(size=(20, 3)), rng.uniform(size=(20, 3)))
+    path = ToolPath(np.arange(5) * 0.1, q, T, 10.0)
+    return Task("fuzz", "1", np.eye(4), np.array(arm.home), np.eye(4), cloud, path)
+
+
+@settings(FUZZ, max_examples=60)  # each case writes a bundle
+@given(st.dictionaries(st.text(max_size=12), yaml_docs, max_size=3), st.booleans())
+def test_bundle_reader_never_escapes(tmp_path_factory, changes: dict, drop: bool) -> None:
+    import yaml
+
+    from mmpa.tasks.bundle import read_bundle, write_bundle
+
+    d = write_bundle(_small_task(), tmp_path_factory.mktemp("b") / "task")
+    doc = yaml.safe_load((d / "task.yaml").read_text())
+    if drop and doc:
+        doc.pop(sorted(doc)[len(changes) % len(doc)])
+    doc.update(changes)
+    (d / "task.yaml").write_text(_dump(doc))
+    try:
+        read_bundle(d)
+    except MMPAError:
+        pass
