@@ -13,6 +13,7 @@ Units: m, rad, s. Every random draw comes from the error model's seeded streams.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -27,7 +28,7 @@ from mmpa.robot.interfaces import Odometry
 from mmpa.robot.limits import JointLimits, check_path, check_positions, limit_setpoint
 from mmpa.sim.error_model import ErrorModel, ErrorModelConfig
 from mmpa.sim.lidar_noise import SmoothWarp
-from mmpa.sim.mjcf import MOUNT_JOINTS, build_model
+from mmpa.sim.mjcf import MOUNT_JOINTS, BuiltModel, build_model
 from mmpa.sim.scene import SceneConfig, load_scene
 from mmpa.sim.sensors import (
     CAMERA_NAME,
@@ -90,7 +91,10 @@ class SimWorld:
         errors: ErrorModelConfig | None = None,
         site: str = "0",
         episode: int = 0,
+        model_hook: Callable[[BuiltModel], BuiltModel] | None = None,
     ) -> None:
+        """``model_hook`` edits the built MJCF before it is compiled (added geometry such
+        as a calibration board; :mod:`mmpa.sim.calibration_board`)."""
         self.scene = scene or load_scene()
         self.nominal = robot or default_robot()
         self.error_model = ErrorModel.sample(self.nominal, errors)
@@ -100,6 +104,8 @@ class SimWorld:
         built = build_model(
             self.scene, self.true_robot, start.pose2d, self.error_model.config.compliance
         )
+        if model_hook is not None:
+            built = model_hook(built)
         self.model = built.compile()
         self.data = mujoco.MjData(self.model)
         m = self.model

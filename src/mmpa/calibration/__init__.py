@@ -1,0 +1,1 @@
+"""Calibration: ChArUco board detection and pose, eye-in-hand (hand-eye) calibration."""

@@ -1,0 +1,59 @@
+"""``mmpa calibrate``: calibrations run in the twin (``hand-eye``: the wrist camera on the
+flange from a ChArUco board, see :mod:`mmpa.experiments.calibrate`)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from mmpa.cli.common import console, fail
+from mmpa.errors import MMPAError
+
+__all__ = ["calibrate_app", "register"]
+
+calibrate_app = typer.Typer(help="Calibrations in the twin: hand-eye (ChArUco board).")
+
+_PROFILES = ("ideal", "reference", "realistic", "harsh")
+
+
+@calibrate_app.command("hand-eye")
+def hand_eye_cmd(
+    out: Annotated[Path, typer.Option(help="output folder (summary.json, hand_eye.yaml)")],
+    site: Annotated[str, typer.Option(help="site of the scene the board stands in front of")] = "0",
+    stations: Annotated[
+        int, typer.Option(help="number of views of the board", min=3, max=100)
+    ] = 15,
+    seed: Annotated[int, typer.Option(help="robot instance of the twin's error model", min=0)] = 0,
+    profile: Annotated[
+        str, typer.Option(help="error model profile: ideal, reference, realistic, harsh")
+    ] = "realistic",
+) -> None:
+    """Calibrate the wrist camera's pose on the flange (eye-in-hand) in the twin: a ChArUco
+    board in front of SITE, STATIONS planned views, cv2.calibrateHandEye with all five
+    methods, the one with the smallest residuals picked, compared with the TRUE hand-eye."""
+    if profile not in _PROFILES:
+        raise typer.BadParameter(f"unknown profile {profile!r}; one of {list(_PROFILES)}")
+    os.environ.setdefault("MUJOCO_GL", "osmesa")
+    os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+    try:
+        from mmpa.experiments.calibrate import HandEyeConfig, run_hand_eye
+
+        cfg = HandEyeConfig(site=site, stations=stations, seed=seed, profile=profile)  # type: ignore[arg-type]
+        s = run_hand_eye(cfg, out, log=lambda m: console.print(m, highlight=False))
+    except MMPAError as e:
+        fail(e)
+    console.print(
+        f"hand-eye ({s['method']}, {s['stations_used']} stations): error "
+        f"{s['error_trans_mm']:.3f} mm, {s['error_rot_deg']:.4f} deg against the true hand-eye "
+        f"(board spread {s['residuals']['point_rms_mm']:.3f} mm RMS); wrote {out}/summary.json, "
+        f"{out}/hand_eye.yaml and {out}/robot.yaml (use it: mmpa --robot {out}/robot.yaml ...)",
+        highlight=False,
+    )
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``calibrate`` to the main app."""
+    app.add_typer(calibrate_app, name="calibrate")
