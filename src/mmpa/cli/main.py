@@ -108,6 +108,10 @@ def demo(
     profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    record: Annotated[
+        Path | None,
+        typer.Option(help="Record the run to this ROS 2 bag (FILE.mcap, or a rosbag2 folder)."),
+    ] = None,
 ) -> None:
     """Drive Site 0 -> Site 1 in the built-in world, capture RGB-D and a scan, write pictures."""
     from mmpa.experiments.demo import run_demo
@@ -126,7 +130,7 @@ def demo(
             def progress(stage: str, frac: float) -> None:
                 bar.update(task, description=stage, completed=max(0.0, min(frac, 1.0)))
 
-            summary = run_demo(cfg, out, progress)
+            summary = run_demo(cfg, out, progress, record=record)
     except MMPAError as e:
         fail(e)
     _show(summary, f"mmpa demo -> {out}")
@@ -280,11 +284,15 @@ def run_cmd(
         raise typer.Exit(1)
 
 
+from mmpa.cli import bags as _bags  # noqa: E402  (registers localize)
+from mmpa.cli import calibrate as _calibrate  # noqa: E402  (registers calibrate)
 from mmpa.cli import navigation as _navigation  # noqa: E402  (registers navigate, map)
 from mmpa.cli import robot as _robot  # noqa: E402  (registers robot)
 
 _navigation.register(app)
+_bags.register(app)
 _robot.register(app)
+_calibrate.register(app)
 
 
 def main() -> None:

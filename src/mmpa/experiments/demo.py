@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
@@ -126,19 +127,36 @@ def _topdown(
     )
 
 
-def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None) -> dict:
-    """Drive ``start_site`` -> ``goal_site``, capture, write the run folder; return the summary."""
+def run_demo(
+    cfg: DemoConfig,
+    out: str | Path,
+    progress: Progress | None = None,
+    record: str | Path | None = None,
+) -> dict:
+    """Drive ``start_site`` -> ``goal_site``, capture, write the run folder; return the summary.
+
+    ``record``: also record the run after teaching (the drive, MMPA, the capture) to this ROS 2
+    bag (``FILE.mcap`` or a rosbag2 folder; :class:`mmpa.bags.Recorder`)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.yaml")
     scene = load_scene(cfg.scene)
     goal = scene.site(cfg.goal_site).pose2d
     wall0 = time.perf_counter()
-    with SimWorld(scene=scene, errors=cfg.errors, site=cfg.start_site) as world:
+    with (
+        SimWorld(scene=scene, errors=cfg.errors, site=cfg.start_site) as world,
+        ExitStack() as stack,
+    ):
         q_view = np.array(
             cfg.arm_view if cfg.arm_view is not None else world.nominal.arm.view_bench
         )
         taught = _teach_first(world, cfg, progress)
+        recorder = None
+        if record is not None:
+            from mmpa.bags import BagWriter, Recorder
+
+            recorder = Recorder(stack.enter_context(BagWriter(record, overwrite=True)), world)
+            world = recorder.world()
         start = world.truth.base_pose2d()
         estimate = None
         if cfg.localization == "truth":
@@ -151,6 +169,9 @@ def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None)
             loc = make_localizer(
                 cfg.localization, grid, laser_pose2d(world), np.random.default_rng(cfg.errors.seed)
             )
+            if recorder is not None:
+                recorder.write_map(grid)
+                loc = recorder.localizer(loc)
             loc.initialize(rough_initial_pose(world))  # the operator's rough pose (truth + error)
             nav_cfg = cfg.navigate.model_copy(update={"timeout": cfg.timeout})
             res = navigate(
@@ -206,6 +227,9 @@ def run_demo(cfg: DemoConfig, out: str | Path, progress: Progress | None = None)
             **{k: v for k, v in extra.items() if not k.startswith("_")},
             **mmpa_summary,
         }
+        if recorder is not None:
+            summary["bag"] = str(record)
+            summary["bag_messages"] = sum(recorder.writer.counts.values())
     _write_summary(out, summary)
     return summary
 

@@ -1,0 +1,15 @@
+"""ROS 2 bags in and out (issue 20): record the twin, read ROS 1 / ROS 2 recordings.
+
+- :mod:`mmpa.bags.messages`: mmpa values <-> ROS messages (``rosbags`` type store);
+- :mod:`mmpa.bags.writer`: :class:`BagWriter` (rosbag2, MCAP storage; a single ``.mcap``
+  file or a bag directory);
+- :mod:`mmpa.bags.record`: :class:`Recorder`, which records a running twin through wrapped
+  devices without touching the simulator;
+- :mod:`mmpa.backends.bag`: bag-backed ``Lidar`` / odometry / ``Camera`` sources;
+- :mod:`mmpa.bags.localize`: offline localization over a bag (``mmpa localize``).
+"""
+
+from mmpa.bags.record import Recorder
+from mmpa.bags.writer import BagWriter
+
+__all__ = ["BagWriter", "Recorder"]

@@ -1,0 +1,85 @@
+"""``mmpa localize --bag BAG``: offline localization over a ROS 1 / ROS 2 recording."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from mmpa.cli.common import console, fail, out_dir
+from mmpa.errors import MMPAError
+
+__all__ = ["register"]
+
+
+def _pose3(text: str | None, what: str) -> tuple[float, float, float] | None:
+    if text is None:
+        return None
+    try:
+        vals = tuple(float(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        raise typer.BadParameter(f"{what} must be three numbers 'x,y,yaw', got {text!r}") from None
+    if len(vals) != 3 or not all(abs(v) < 1e6 for v in vals):
+        raise typer.BadParameter(f"{what} must be three finite numbers 'x,y,yaw', got {text!r}")
+    return vals  # type: ignore[return-value]
+
+
+def localize_cmd(
+    bag: Annotated[Path, typer.Option("--bag", help="ROS 1 .bag, rosbag2 folder, .mcap or .db3.")],
+    map_yaml: Annotated[
+        Path | None,
+        typer.Option("--map", help="map_server YAML with reflectors (default: the bag's /map)."),
+    ] = None,
+    method: Annotated[
+        str, typer.Option(help="amcl | enhanced | enhanced-paper | trilateration | tamcl | hector")
+    ] = "enhanced",
+    out: Annotated[Path, typer.Option(help="Run folder to write.")] = Path("runs/localize"),
+    seed: Annotated[int, typer.Option(help="Seed of the localizer's random stream.", min=0)] = 0,
+    force: Annotated[
+        bool, typer.Option(help="Force every filter update (also while standing).")
+    ] = False,
+    initial_pose: Annotated[
+        str | None, typer.Option(help="'x,y,yaw' (default: the bag's /initialpose).")
+    ] = None,
+    laser_pose: Annotated[
+        str | None,
+        typer.Option(help="Lidar mount 'x,y,yaw' in base_link (default: the bag's /tf_static)."),
+    ] = None,
+    scan_topic: Annotated[str, typer.Option(help="LaserScan topic.")] = "/scan",
+    odom_topic: Annotated[str, typer.Option(help="Odometry topic.")] = "/odom",
+    max_scans: Annotated[
+        int | None, typer.Option(help="Stop after this many scans.", min=1)
+    ] = None,
+) -> None:
+    """Run a localizer over a bag's scans and odometry; write estimate.csv, estimate.mcap
+    (/amcl_pose), trajectory.png and summary.json (with the error when the bag has
+    /truth/base_pose)."""
+    from mmpa.backends.bag import BagTopics
+    from mmpa.bags.localize import LocalizeConfig, run_localize
+
+    try:
+        cfg = LocalizeConfig(
+            method=method,
+            seed=seed,
+            force=force,
+            initial_pose=_pose3(initial_pose, "--initial-pose"),
+            laser_pose=_pose3(laser_pose, "--laser-pose"),
+            max_scans=max_scans,
+            topics=BagTopics(scan=scan_topic, odom=odom_topic),
+        )
+        with console.status(f"localizing over {bag}"):
+            summary = run_localize(bag, out_dir(out), map_yaml, cfg)
+    except MMPAError as e:
+        fail(e)
+    from rich.table import Table
+
+    t = Table(title=f"mmpa localize -> {out}", show_header=False)
+    for k, v in summary.items():
+        t.add_row(k, str(v))
+    console.print(t)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``localize`` to the root app."""
+    app.command("localize")(localize_cmd)
