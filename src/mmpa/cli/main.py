@@ -112,6 +112,14 @@ def demo(
         Path | None,
         typer.Option(help="Record the run to this ROS 2 bag (FILE.mcap, or a rosbag2 folder)."),
     ] = None,
+    view: Annotated[
+        int | None,
+        typer.Option(
+            help="Serve the run live to Foxglove on ws://127.0.0.1:PORT (0: a free port).",
+            min=0,
+            max=65535,
+        ),
+    ] = None,
 ) -> None:
     """Drive Site 0 -> Site 1 in the built-in world, capture RGB-D and a scan, write pictures."""
     from mmpa.experiments.demo import run_demo
@@ -130,7 +138,7 @@ def demo(
             def progress(stage: str, frac: float) -> None:
                 bar.update(task, description=stage, completed=max(0.0, min(frac, 1.0)))
 
-            summary = run_demo(cfg, out, progress, record=record)
+            summary = run_demo(cfg, out, progress, record=record, view=view)
     except MMPAError as e:
         fail(e)
     _show(summary, f"mmpa demo -> {out}")

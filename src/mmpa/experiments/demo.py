@@ -132,11 +132,14 @@ def run_demo(
     out: str | Path,
     progress: Progress | None = None,
     record: str | Path | None = None,
+    view: int | None = None,
 ) -> dict:
     """Drive ``start_site`` -> ``goal_site``, capture, write the run folder; return the summary.
 
     ``record``: also record the run after teaching (the drive, MMPA, the capture) to this ROS 2
-    bag (``FILE.mcap`` or a rosbag2 folder; :class:`mmpa.bags.Recorder`)."""
+    bag (``FILE.mcap`` or a rosbag2 folder; :class:`mmpa.bags.Recorder`). ``view``: serve the
+    same topics live to Foxglove on ``ws://127.0.0.1:view`` (:class:`mmpa.bags.view.FoxgloveView`;
+    0 picks a free port)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.yaml")
@@ -152,10 +155,19 @@ def run_demo(
         )
         taught = _teach_first(world, cfg, progress)
         recorder = None
-        if record is not None:
+        if record is not None or view is not None:
             from mmpa.bags import BagWriter, Recorder
+            from mmpa.bags.view import FoxgloveView, Tee
 
-            recorder = Recorder(stack.enter_context(BagWriter(record, overwrite=True)), world)
+            sinks: list = []
+            if record is not None:
+                bag = stack.enter_context(BagWriter(record, overwrite=True))
+                sinks.append(bag)
+            if view is not None:
+                sinks.append(stack.enter_context(FoxgloveView(port=view)))
+                if progress:
+                    progress(f"live view: open ws://127.0.0.1:{sinks[-1].port} in Foxglove", 0.0)
+            recorder = Recorder(sinks[0] if len(sinks) == 1 else Tee(*sinks), world)
             world = recorder.world()
         start = world.truth.base_pose2d()
         estimate = None
@@ -227,9 +239,11 @@ def run_demo(
             **{k: v for k, v in extra.items() if not k.startswith("_")},
             **mmpa_summary,
         }
-        if recorder is not None:
+        if record is not None:
             summary["bag"] = str(record)
-            summary["bag_messages"] = sum(recorder.writer.counts.values())
+            summary["bag_messages"] = sum(bag.counts.values())
+        if view is not None:
+            summary["view"] = f"ws://127.0.0.1:{sinks[-1].port}"
     _write_summary(out, summary)
     return summary
 
