@@ -16,6 +16,11 @@ What the C++ side is: ``amcl`` 0.1.2 (nanobind bindings of Nav2's ``pf`` library
 likelihood field), its ``update`` runs the filter on every call (no ``update_min_d`` gating,
 like our ``force=True``), and it takes a ``0/100/-1`` grid with rows along ``y``. So the
 like-for-like figure is our beam model against it; our likelihood field is printed beside.
+
+Measured on the shared 2-core dev machine (load ~4, medians of 60 updates): C++ beam model
+21.2-21.6 ms (final error 17.7 cm); ours 87 ms before the ray cast's lookup table
+(``AMCL._skip_table``), 39 ms after (7.4 cm, identical ranges); our likelihood field
+2.3-2.5 ms (7.5 cm).
 """
 
 from __future__ import annotations

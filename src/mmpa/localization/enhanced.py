@@ -113,8 +113,9 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from mmpa.errors import InvalidInputError
 from mmpa.geometry import Array
-from mmpa.localization.amcl import AMCL, AMCLConfig, PoseEstimate, _wrap
+from mmpa.localization.amcl import AMCL, AMCLConfig, PoseEstimate, _wrap, finite_pose
 from mmpa.localization.maps import OccupancyGrid
 from mmpa.localization.reflectors import (
     DetectionConfig,
@@ -170,6 +171,19 @@ class ObserverConfig(BaseModel):
     # down there lets the position follow the ranges: parked near site 1, 25 scans, 8 poses,
     # seeds 0/1: 1.54/1.50 mm -> 1.22/1.11 mm. Tracked 2-reflector fixes need their bearings.
     bearing_sigma_static: float = Field(0.001, ge=0)
+    # rad: the lidar's angular step the bearing terms above were measured at (the twin's
+    # 0.25 deg). A reflector's bearing is the middle of its first and last hit beams, each edge
+    # uniform within one step ``a``: SD ``a / sqrt(24)`` however many beams hit (synthetic
+    # scans: 0.89 mrad at 0.25 deg for 4-10 beams, 3.2-3.6 mrad at 1 deg for 1-2 beams). With
+    # ``scale_with_scan`` the bearing SD is at least ``bearing_sigma_floor + sqrt((a^2 -
+    # reference^2) / 24)``: nothing changes at the reference step (the twin) or finer, and a
+    # coarse lidar's near reflectors (many beams, small ``1/sqrt(k)`` term) are not trusted
+    # beyond its quantization. Scaling the SDs by ``a / reference`` instead was tried: 1 deg
+    # fixes got worse (5.91 -> 8.23 mm mean: bearings trusted too little, ranges too much;
+    # the ``1/sqrt(k)`` terms already grow as fewer beams hit). The range SD follows the beams
+    # per reflector the same way (measured 15.5 / 11.2 mm at 1 / 2 beams, model 17 / 12.6).
+    bearing_reference_step: float = Field(float(np.deg2rad(0.25)), gt=0)
+    scale_with_scan: bool = True
     outlier_sigmas: float = Field(3.5, gt=0)  # drop reflectors with larger normalized residual
     # improvement: mu_G by a joint Gauss-Newton on ranges AND bearings weighted by the SDs
     # above (:func:`trilaterate` ``refine_heading``); False: eq. 1 (least squares on the
@@ -291,23 +305,28 @@ class ReflectorObserver:
         self.bias = self.cfg.range_bias_prior if self.cfg.range_bias else 0.0
         self.bias_info = 1.0 / self.cfg.range_bias_sigma**2
         self.bias_updates = 0
+        #: rad, lower bound of bearing SDs for the last scan's step (``scale_with_scan``)
+        self.step_floor = 0.0
 
     def sigmas(self, beams: np.ndarray, redundant: bool = False) -> tuple[Array, Array]:
         """Range and bearing SD (m, rad) of reflector centers fitted from ``beams`` (n,) hits:
         ``sigma_r = floor_r + sigma_r_beam / sqrt(k)``, ``sigma_phi = floor_phi +
         sigma_phi_beam / sqrt(k)`` (the fit averages ``k`` beams), plus
-        ``bearing_sigma_static`` for a ``redundant`` (3+ reflector) fix."""
+        ``bearing_sigma_static`` for a ``redundant`` (3+ reflector) fix; with
+        ``scale_with_scan`` the bearing SD is at least :attr:`step_floor` (the last scan's
+        angular step, if coarser than ``bearing_reference_step``)."""
         c = self.cfg
         k = np.sqrt(np.maximum(np.asarray(beams, float), 1.0))
         static = c.bearing_sigma_static if redundant else 0.0
-        return (
-            c.range_sigma_floor + c.range_sigma_beam / k,
-            c.bearing_sigma_floor + static + c.bearing_sigma_beam / k,
-        )
+        sb = np.maximum(c.bearing_sigma_floor + static + c.bearing_sigma_beam / k, self.step_floor)
+        return c.range_sigma_floor + c.range_sigma_beam / k, sb
 
     def observe(self, scan: LaserScan) -> ReflectorFix | None:
         """The fix of this scan, or None if fewer than ``min_reflectors`` are identified."""
         c = self.cfg
+        if c.scale_with_scan and np.isfinite(scan.angle_increment):
+            a, a0 = abs(float(scan.angle_increment)), c.bearing_reference_step
+            self.step_floor = c.bearing_sigma_floor + float(np.sqrt(max(a * a - a0 * a0, 0) / 24))
         raw = detect_reflectors(scan, c.detection)  # sensor frame
         self.last_occluded = int(raw.cut.sum())
         if c.drop_occluded and self.last_occluded:
@@ -484,6 +503,9 @@ class EnhancedConfig(BaseModel):
     landmark_map_sigma: float = Field(0.010, gt=0)
     landmark_min_reflectors: int = Field(4, ge=3)
     landmark_sigma_min: float = Field(0.0005, gt=0)  # m: posterior SD floor (static errors)
+    # a map with fewer than three reflectors (a building mapped without them): False refuses
+    # to start (InvalidInputError), True runs plain AMCL (Algorithm 1 lines 4-10) throughout
+    fallback_to_amcl: bool = False
 
     @classmethod
     def paper(cls) -> EnhancedConfig:
@@ -652,14 +674,43 @@ class EnhancedAMCL(AMCL):
         cfg: EnhancedConfig | None = None,
         rng: np.random.Generator | None = None,
         landmarks: Array | None = None,
+        reflector_radius: float | None = None,
     ) -> None:
         self.ecfg = cfg or EnhancedConfig()
         super().__init__(grid, laser_pose, self.ecfg.amcl, rng)
-        lm = grid.reflectors if landmarks is None else landmarks
+        lm = grid.reflectors if landmarks is None else np.asarray(landmarks, float).reshape(-1, 2)
         obs_cfg = self.ecfg.observer
-        if grid.reflector_radius > 0 and landmarks is None:
-            det = obs_cfg.detection.model_copy(update={"radius": grid.reflector_radius})
+        # reflector radius: the caller's, else the map's; landmarks given without a radius on a
+        # map without one would silently use the config's default (4 cm): refused
+        if reflector_radius is not None:
+            if not (np.isfinite(reflector_radius) and reflector_radius >= 0):
+                raise InvalidInputError(
+                    f"reflector_radius must be finite and >= 0 m, got {reflector_radius}"
+                )
+            radius: float | None = float(reflector_radius)
+        elif grid.reflector_radius > 0:
+            radius = float(grid.reflector_radius)
+        elif landmarks is not None and len(lm) > 0:
+            raise InvalidInputError(
+                "landmarks given without reflector_radius and the map has none: pass "
+                "reflector_radius= (m, 0 for flat tape) so detection fits the right circle"
+            )
+        else:
+            radius = None
+        if radius is not None:
+            det = obs_cfg.detection.model_copy(update={"radius": radius})
             obs_cfg = obs_cfg.model_copy(update={"detection": det})
+        #: True: fewer than three reflectors and ``fallback_to_amcl``, plain AMCL throughout
+        self.plain_amcl = False
+        if len(lm) < 3:
+            if not self.ecfg.fallback_to_amcl:
+                src = "the map" if landmarks is None else "landmarks="
+                raise InvalidInputError(
+                    f"enhanced AMCL needs >= 3 reflector landmarks; {src} holds {len(lm)}. "
+                    "Use the 'amcl' method, or set EnhancedConfig.fallback_to_amcl=True to run "
+                    "plain AMCL on this map"
+                )
+            self.plain_amcl = True
         self.observer = ReflectorObserver(lm, laser_pose, obs_cfg)
         self.last_fix: ReflectorFix | None = None
         self._far_fixes = 0
@@ -800,6 +851,8 @@ class EnhancedAMCL(AMCL):
         landmarks; returns (detection indices, landmark ids) within ``track_gate``."""
         det = self.observer.last_detections
         L = self.observer.landmarks
+        if len(det) == 0 or len(L) == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
         c, s_ = np.cos(pose[2]), np.sin(pose[2])
         pm = det.points @ np.array([[c, s_], [-s_, c]]) + pose[:2]
         d = np.linalg.norm(pm[:, None, :] - L[None, :, :], axis=2)
@@ -944,6 +997,13 @@ class EnhancedAMCL(AMCL):
         return PoseEstimate(est.pose, est.cov, est.n_particles, True, src)
 
     def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
+        if self.particles.shape[0] == 0:
+            raise InvalidInputError("set an initial pose or call global_localization() first")
+        odom_pose = finite_pose(odom_pose, "odometry pose")
+        if self.plain_amcl:  # fallback_to_amcl on a map with < 3 reflectors
+            self.last_fix = None
+            est = super().update(odom_pose, scan, force)
+            return PoseEstimate(est.pose, est.cov, est.n_particles, est.updated, "amcl")
         self._scans_seen += 1
         self._beam_offset = self._scans_seen * self.ecfg.partial_laser_rotate
         fix = self.observer.observe(scan)

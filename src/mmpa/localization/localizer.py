@@ -20,7 +20,7 @@ import numpy as np
 
 from mmpa.errors import InvalidInputError, UnknownNameError
 from mmpa.geometry import Array
-from mmpa.localization.amcl import AMCL, AMCLConfig, PoseEstimate, compose_odom
+from mmpa.localization.amcl import AMCL, AMCLConfig, PoseEstimate, compose_odom, finite_pose
 from mmpa.localization.enhanced import (
     EnhancedAMCL,
     EnhancedConfig,
@@ -82,10 +82,11 @@ class TrilaterationLocalizer:
         self.last_fix: ReflectorFix | None = None
 
     def initialize(self, pose: Array, cov: Array | None = None) -> None:
-        self._pose = np.asarray(pose, float).reshape(3).copy()
+        self._pose = finite_pose(pose, "initial pose").copy()
         self.valid = False
 
     def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
+        finite_pose(odom_pose, "odometry pose")  # unused, but a NaN says the caller is broken
         fix = self.observer.observe(scan)
         self.last_fix = fix
         self.valid = fix is not None
@@ -123,13 +124,13 @@ class TAMCL:
         self.mode = "init"
 
     def initialize(self, pose: Array, cov: Array | None = None) -> None:
-        self._pose = np.asarray(pose, float).reshape(3).copy()
+        self._pose = finite_pose(pose, "initial pose").copy()
         self.amcl.set_initial_pose(self._pose, cov)
         self.mode = "amcl"
 
     def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
+        odom_pose = finite_pose(odom_pose, "odometry pose")
         fix = self.observer.observe(scan)
-        odom_pose = np.asarray(odom_pose, float)
         if fix is not None:
             self._pose, self._cov, self._odom = fix.pose.copy(), fix.trilateration.cov, odom_pose
             self.mode = "trilateration"

@@ -120,7 +120,11 @@ def trilaterate(
         if len(L) < 2 or len(r) != len(L) or not np.all(np.isfinite(r)):
             raise InvalidInputError("pose refinement needs >= 2 reflectors with finite ranges")
         phi = np.asarray(bearings, float).reshape(-1)
-        x = np.asarray(initial, float).reshape(3).copy()
+        x = np.asarray(initial, float).reshape(-1).copy()
+        if x.shape != (3,) or not np.all(np.isfinite(x)):
+            raise InvalidInputError(f"initial pose must be a finite [x, y, theta], got {x}")
+        if phi.shape != r.shape or not (np.all(np.isfinite(phi)) and np.all(np.isfinite(L))):
+            raise InvalidInputError("landmarks and bearings must be finite, one bearing per range")
         refine_heading = True
     else:
         L, r = _check(landmarks, ranges, bearings)
@@ -223,7 +227,11 @@ def trilaterate_bias(
     else:
         if len(L) < 2 or len(r) != len(L) or phi.shape != r.shape:
             raise InvalidInputError("pose refinement needs >= 2 reflectors with ranges/bearings")
-        x0 = np.asarray(initial, float).reshape(3)
+        x0 = np.asarray(initial, float).reshape(-1)
+        if x0.shape != (3,) or not np.all(np.isfinite(x0)):
+            raise InvalidInputError(f"initial pose must be a finite [x, y, theta], got {x0}")
+    if not np.all(np.isfinite(L)):
+        raise InvalidInputError("trilateration landmarks contain NaN/inf")
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(phi)) and np.all(np.isfinite(x0))):
         raise InvalidInputError("trilateration input contains NaN/inf")
     x = np.array([*x0, bias_mean], float)

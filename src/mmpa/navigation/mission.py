@@ -254,7 +254,7 @@ def navigate(
                 and abs(wrap_angle(est[2] - goal[2])) <= cfg.follower.final.yaw_tol * 1.5
             )
             if ok or corrections >= cfg.max_corrections:
-                reached = bool(ok) or corrections >= cfg.max_corrections
+                reached = bool(ok)  # corrections used up out of tolerance: not reached
                 break
             corrections += 1
             follower.restart_final()
