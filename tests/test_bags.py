@@ -447,6 +447,27 @@ def test_localize_cli_writes_the_run_folder(twin_recording, tmp_path) -> None:
     assert r.exit_code == 0, r.output
     rows2 = np.loadtxt(out2 / "estimate.csv", delimiter=",", skiprows=1)
     np.testing.assert_allclose(rows2, rows, atol=1e-9)
+    # a map without reflectors plus the reflectors as their own file: the same estimates
+    import dataclasses
+
+    from mmpa.localization.reflector_map import ReflectorMap, save_reflector_map
+
+    grid = twin_recording["plain"][1]
+    bare = dataclasses.replace(grid, reflectors=np.zeros((0, 2)), reflector_radius=0.0)
+    bare_yaml = save_map(bare, tmp_path / "bare" / "map.yaml")
+    n = len(grid.reflectors)
+    rm_path = save_reflector_map(
+        ReflectorMap(np.arange(n), grid.reflectors, np.full(n, grid.reflector_radius)),
+        tmp_path / "reflectors.yaml",
+    )
+    out3 = tmp_path / "loc3"
+    args = ["localize", "--bag", str(path), "--map", str(bare_yaml), "--out", str(out3)]
+    r = CliRunner().invoke(app, [*args, "--reflectors", str(rm_path), "--seed", "7", "--force"])
+    assert r.exit_code == 0, r.output
+    rows3 = np.loadtxt(out3 / "estimate.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(rows3, rows, atol=1e-9)
+    r = CliRunner().invoke(app, [*args, "--seed", "7", "--force"])  # no reflectors at all
+    assert r.exit_code == 2 and "needs >= 3 reflector landmarks; the map holds 0" in r.output
     bad = CliRunner().invoke(
         app, ["localize", "--bag", str(tmp_path / "nope.mcap"), "--out", str(out)]
     )

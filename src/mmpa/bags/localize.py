@@ -207,9 +207,12 @@ def run_localize(
     out: str | Path,
     map_yaml: str | Path | None = None,
     cfg: LocalizeConfig | None = None,
+    reflectors: str | Path | None = None,
 ) -> dict:
     """Localize over ``bag`` on the map ``map_yaml`` (None: the bag's ``/map`` and
-    ``/reflectors``) and write the run folder ``out``; returns the summary."""
+    ``/reflectors``) and write the run folder ``out``; returns the summary. ``reflectors``:
+    a reflector map file (:mod:`mmpa.localization.reflector_map`) replacing the map's own
+    reflectors (one radius for all)."""
     cfg = cfg or LocalizeConfig()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -219,6 +222,21 @@ def run_localize(
         grid = load_map(map_yaml)
     else:
         grid = grid_from_bag(bag, cfg.topics)
+    if reflectors is not None:
+        import dataclasses
+
+        from mmpa.errors import ConfigError
+        from mmpa.localization.reflector_map import load_reflector_map
+
+        rm = load_reflector_map(reflectors)
+        if np.ptp(rm.radius) > 1e-9:
+            raise ConfigError(
+                f"{reflectors}: reflectors of different radii ({np.unique(rm.radius)} m); the "
+                "localizer takes one radius"
+            )
+        grid = dataclasses.replace(
+            grid, reflectors=rm.xy.copy(), reflector_radius=float(rm.radius[0])
+        )
     pb = BagPlayback.open(bag, cfg.topics)
     res = localize_bag(pb, grid, cfg)
     _write_csv(out / "estimate.csv", res)
@@ -227,6 +245,7 @@ def run_localize(
     summary: dict = {
         "bag": str(bag),
         "map": str(map_yaml) if map_yaml is not None else f"{bag} ({cfg.topics.map})",
+        "reflectors": str(reflectors) if reflectors is not None else "the map's",
         "method": cfg.method,
         "seed": cfg.seed,
         "scans": len(res.t),

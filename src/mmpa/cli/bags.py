@@ -31,6 +31,10 @@ def localize_cmd(
         Path | None,
         typer.Option("--map", help="map_server YAML with reflectors (default: the bag's /map)."),
     ] = None,
+    reflectors: Annotated[
+        Path | None,
+        typer.Option(help="Reflector map file (id, x, y, radius) replacing the map's reflectors."),
+    ] = None,
     method: Annotated[
         str, typer.Option(help="amcl | enhanced | enhanced-paper | trilateration | tamcl | hector")
     ] = "enhanced",
@@ -69,7 +73,7 @@ def localize_cmd(
             topics=BagTopics(scan=scan_topic, odom=odom_topic),
         )
         with console.status(f"localizing over {bag}"):
-            summary = run_localize(bag, out_dir(out), map_yaml, cfg)
+            summary = run_localize(bag, out_dir(out), map_yaml, cfg, reflectors=reflectors)
     except MMPAError as e:
         fail(e)
     from rich.table import Table
