@@ -214,3 +214,52 @@ def test_robust_weights_are_the_kernels_rho_prime_over_r():
     assert robust_weights(np.array([0.01]), c, "geman_mcclure")[0] < 1e-3
     with pytest.raises(InvalidInputError):
         robust_weights(r, c, "tukey")
+
+
+def _hole_grid(depth: np.ndarray) -> np.ndarray:
+    """The target with a regular grid of 1-px holes like a depth aligned to colour: every
+    4th row and every 3rd column invalid, and a third of the rest at random (~1/3 valid)."""
+    out = depth.copy()
+    out[::4, :] = 0.0
+    out[:, ::3] = 0.0
+    out[np.random.default_rng(3).random(out.shape) < 0.33] = 0.0
+    return out
+
+
+def test_depth_with_a_grid_of_holes(pair):
+    src, tgt = pair
+    holes = _hole_grid(tgt)
+    assert 0.25 < (holes > 0).mean() < 0.4
+    init = exp_se3([0.001, 0.001, -0.001, -0.002, 0.001, 0.0]) @ T_TRUE
+    r = refine_projective(src, holes, K, init)
+    assert r.ok, r.reason
+    assert r.inlier_fraction > 0.5
+    # filled holes read the vertex of a neighbour on the same surface: still exact
+    assert translation_error(T_TRUE, r.T) < 1e-4
+    assert rotation_error(T_TRUE, r.T) < 5e-4
+    # without filling, most associations or their central differences hit a hole
+    bare = refine_projective(src, holes, K, init, ProjectiveConfig(hole_fill_px=0))
+    assert not bare.ok and bare.inlier_fraction < 0.2
+    # a dense image has nothing to fill: bitwise the same result either way
+    a = refine_projective(src, tgt, K, init)
+    b = refine_projective(src, tgt, K, init, ProjectiveConfig(hole_fill_px=0))
+    np.testing.assert_array_equal(a.T, b.T)
+
+
+def test_rmse_gate_follows_the_depth_noise_model(pair):
+    src, tgt = pair
+    rng = np.random.default_rng(5)
+    k = 0.008  # m^-1: sigma_z = 2.9 mm at 0.6 m, RMSE of the pair ~4 mm
+    noisy = np.where(tgt > 0, tgt + rng.normal(0, 1, tgt.shape) * k * tgt**2, 0.0)
+    src_noisy = src + rng.normal(0, 1, src.shape) * (k * src[:, 2:] ** 2) * np.array([0, 0, 1])
+    cfg = ProjectiveConfig(depth_noise_k=k, gate=0.02, huber=0.004, estimate_scale=False)
+    r = refine_projective(src_noisy, noisy, K, T_TRUE, cfg)
+    z = np.median(src @ T_TRUE[:3, :3].T[:, 2] + T_TRUE[2, 3])  # ~ the inliers' median depth
+    assert r.rmse > 0.003  # above the fixed limit
+    assert r.stages["max_rmse"] == pytest.approx(1.5 * np.sqrt(2) * k * z**2, rel=0.1)
+    assert r.ok, r.reason
+    assert translation_error(T_TRUE, r.T) < 1e-3
+    fixed = refine_projective(
+        src_noisy, noisy, K, T_TRUE, cfg.model_copy(update={"rmse_gate": "fixed"})
+    )
+    assert not fixed.ok and "RMSE" in fixed.reason

@@ -334,6 +334,16 @@ def _prepare(cloud: Any, cfg: RegistrationConfig, features: bool) -> Prepared:
         # the search is kept for the normals of this level, computed if it is an ICP target
         knn = (fine_pts, keep_v, d[kept], nb[kept])
     stats["n_fine"] = len(fine.points)
+    if len(fine.points) >= 2:
+        fp = np.asarray(fine.points)
+        if knn is not None:  # the distance to the nearest other voxel, from the kept search
+            d1 = knn[2][:, 1]
+        else:
+            d1 = cKDTree(fp).query(fp, k=2)[0][:, 1]
+        # RMS nearest-neighbour spacing (m) and median depth (m) of the finest level: what a
+        # correct fit's inlier RMSE is made of (RegistrationConfig's RMSE gate)
+        stats["spacing"] = float(np.sqrt(np.mean(np.square(d1))))
+        stats["median_depth"] = float(np.median(fp[:, 2]))
     if len(fine.points) < cfg.min_points:
         return _empty(
             key,
@@ -682,8 +692,10 @@ def _fine_stage(
         return fail(f"too few correspondences: {n} < {cfg.min_correspondences} (no overlap?)")
     if fit < cfg.min_fitness:
         return fail(f"low fitness {fit:.3f} < {cfg.min_fitness} (little overlap or wrong pose)")
-    if rmse > cfg.max_rmse:
-        return fail(f"inlier RMSE {rmse * 1e3:.2f} mm > {cfg.max_rmse * 1e3:.2f} mm")
+    max_rmse = rmse_gate(src, tgt, cfg)
+    stages["max_rmse"] = max_rmse
+    if rmse > max_rmse:
+        return fail(f"inlier RMSE {rmse * 1e3:.2f} mm > {max_rmse * 1e3:.2f} mm")
     if shift > max_shift or rot > max_rot:
         return fail(
             f"fine stage moved {shift * 1e3:.1f} mm / {rot:.2f} deg from the "
@@ -718,6 +730,29 @@ def _fine_stage(
 
 
 _DOF = ("rx", "ry", "rz", "x", "y", "z")
+
+
+def rmse_gate(src: Prepared, tgt: Prepared, cfg: RegistrationConfig) -> float:
+    """The inlier-RMSE limit (m) of a registration of ``src`` onto ``tgt``.
+
+    ``cfg.rmse_gate == "fixed"``: ``cfg.max_rmse``. ``"adaptive"``: the inlier RMSE of a
+    correct fit between two voxel clouds is the distance from a source voxel to the nearest
+    target voxel, made of the sampling of the two clouds and of the depth noise,
+    ``e^2 = (a s)^2 + 2 sigma_z^2`` with ``s`` the larger RMS nearest-neighbour spacing of
+    the two finest levels (measured by ``prepare``: sparser where the depth image has holes),
+    ``a = rmse_spacing_factor`` and ``sigma_z = depth_noise_k z^2`` at the larger median depth
+    ``z`` of the two clouds (structured-light / stereo noise); the limit is
+    ``max(max_rmse, rmse_margin * e)``, capped at ``rmse_max_fraction`` of the finest ICP
+    gate (inliers are within that gate: a limit near it tests nothing).
+    """
+    if cfg.rmse_gate == "fixed":
+        return cfg.max_rmse
+    s = max(src.stats.get("spacing", 0.0), tgt.stats.get("spacing", 0.0))
+    z = max(src.stats.get("median_depth", 0.0), tgt.stats.get("median_depth", 0.0))
+    sigma = cfg.depth_noise_k * z * z
+    e = float(np.hypot(cfg.rmse_spacing_factor * s, np.sqrt(2.0) * sigma))
+    cap = cfg.rmse_max_fraction * min(sc.max_distance for sc in (*cfg.scales, *cfg.init_scales))
+    return float(min(max(cfg.max_rmse, cfg.rmse_margin * e), cap))
 
 
 def color_correlation(colors_s: Array, colors_t: Array, min_std: float = 0.02) -> float:
