@@ -56,6 +56,7 @@ class RealSenseConfig(BaseModel):
     playback: Path | None = None
     real_time: bool = False
     timeout_ms: int = Field(5000, gt=0)
+    queue_size: int = Field(256, gt=0)  # frames buffered per stream when playing a recording
 
 
 class RealSenseCamera:
@@ -65,11 +66,39 @@ class RealSenseCamera:
         self.cfg = cfg = cfg or RealSenseConfig()
         rs = _rs()
         self._rs = rs
-        config = rs.config()
+        self._pipe: Any = None
+        self._queues: dict[str, Any] | None = None
+        self._sensors: list[Any] = []
+        self._align: Any = None
         if cfg.playback is not None:
-            if not Path(cfg.playback).is_file():
-                raise InvalidInputError(f"no RealSense recording at {cfg.playback}")
-            config.enable_device_from_file(str(cfg.playback), repeat_playback=False)
+            device, cprof, dprof = self._open_playback(Path(cfg.playback))
+        else:
+            device, cprof, dprof = self._start_pipeline(None)
+        self.depth_scale = float(device.first_depth_sensor().get_depth_scale())
+        i = cprof.get_intrinsics()
+        if any(abs(c) > 1e-9 for c in i.coeffs):
+            _log.warning("colour stream has distortion %s; mmpa assumes a pinhole", i.coeffs)
+        self._intrinsics = CameraIntrinsics(
+            width=i.width, height=i.height, fx=i.fx, fy=i.fy, cx=i.ppx, cy=i.ppy
+        )
+        if self._queues is None and not _aligned(dprof, cprof):
+            self._align = rs.align(rs.stream.color)
+        self._closed = False
+        _log.info(
+            "RealSense %s: %dx%d, depth scale %.6f m",
+            cfg.playback or device.get_info(rs.camera_info.serial_number),
+            i.width,
+            i.height,
+            self.depth_scale,
+        )
+
+    def _start_pipeline(self, playback: Path | None) -> tuple[Any, Any, Any]:
+        """Stream through ``rs.pipeline`` (a device, or a recording of a real camera: its
+        syncer pairs depth with colour and ``rs.align`` aligns them)."""
+        rs, cfg = self._rs, self.cfg
+        config = rs.config()
+        if playback is not None:
+            config.enable_device_from_file(str(playback), repeat_playback=False)
         else:
             if cfg.serial is not None:
                 config.enable_device(cfg.serial)
@@ -79,40 +108,47 @@ class RealSenseCamera:
         try:
             profile = self._pipe.start(config)
         except RuntimeError as e:
-            what = cfg.playback or (cfg.serial or "the first RealSense device")
+            what = playback or (cfg.serial or "the first RealSense device")
             raise MMPAError(f"cannot start RealSense streaming from {what}: {e}") from e
         device = profile.get_device()
-        if cfg.playback is not None:
+        if playback is not None:
             device.as_playback().set_real_time(cfg.real_time)
-        self.depth_scale = float(device.first_depth_sensor().get_depth_scale())
-        color = profile.get_stream(rs.stream.color).as_video_stream_profile()
-        i = color.get_intrinsics()
-        if any(abs(c) > 1e-9 for c in i.coeffs):
-            _log.warning("colour stream has distortion %s; mmpa assumes a pinhole", i.coeffs)
-        self._intrinsics = CameraIntrinsics(
-            width=i.width, height=i.height, fx=i.fx, fy=i.fy, cx=i.ppx, cy=i.ppy
-        )
-        # depth already aligned to colour (same intrinsics, identity extrinsics: recordings
-        # of aligned frames) is used as is; rs.align would re-project it and move ~5 % of the
-        # pixels by one
+        cprof = profile.get_stream(rs.stream.color).as_video_stream_profile()
         dprof = profile.get_stream(rs.stream.depth).as_video_stream_profile()
-        di = dprof.get_intrinsics()
-        ext = dprof.get_extrinsics_to(color)
-        aligned = (
-            (di.width, di.height, di.fx, di.fy, di.ppx, di.ppy)
-            == (i.width, i.height, i.fx, i.fy, i.ppx, i.ppy)
-            and np.allclose(ext.rotation, np.eye(3).ravel())
-            and np.allclose(ext.translation, 0.0)
-        )
-        self._align = None if aligned else rs.align(rs.stream.color)
-        self._closed = False
-        _log.info(
-            "RealSense %s: %dx%d, depth scale %.6f m",
-            cfg.playback or device.get_info(rs.camera_info.serial_number),
-            i.width,
-            i.height,
-            self.depth_scale,
-        )
+        return device, cprof, dprof
+
+    def _open_playback(self, path: Path) -> tuple[Any, Any, Any]:
+        """A recording: depth already aligned to colour (recordings of aligned frames, e.g.
+        :func:`record_frames`) is read frame by frame from each sensor's queue, depth and
+        colour paired by frame number (the pipeline's syncer may drop the first frames of a
+        playback); anything else goes through the pipeline and ``rs.align``."""
+        rs = self._rs
+        if not path.is_file():
+            raise InvalidInputError(f"no RealSense recording at {path}")
+        try:
+            device = rs.context().load_device(str(path))
+        except RuntimeError as e:
+            raise MMPAError(f"cannot open the RealSense recording {path}: {e}") from e
+        streams: dict[str, tuple[Any, Any]] = {}
+        for sensor in device.query_sensors():
+            for prof in sensor.get_stream_profiles():
+                streams[str(prof.stream_type())] = (sensor, prof)
+        if "stream.depth" not in streams or "stream.color" not in streams:
+            raise MMPAError(f"{path} lacks a depth or a colour stream: {sorted(streams)}")
+        cprof = streams["stream.color"][1].as_video_stream_profile()
+        dprof = streams["stream.depth"][1].as_video_stream_profile()
+        if not _aligned(dprof, cprof):
+            return self._start_pipeline(path)
+        device.as_playback().set_real_time(self.cfg.real_time)
+        self._queues = {}
+        for kind in ("stream.depth", "stream.color"):
+            sensor, prof = streams[kind]
+            queue = rs.frame_queue(self.cfg.queue_size, True)
+            sensor.open(prof)
+            sensor.start(queue)
+            self._sensors.append(sensor)
+            self._queues[kind] = queue
+        return device, cprof, dprof
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
@@ -124,13 +160,16 @@ class RealSenseCamera:
         if self._closed:
             raise MMPAError("the RealSense camera is closed")
         try:
-            frames = self._pipe.wait_for_frames(self.cfg.timeout_ms)
-            if self._align is not None:
-                frames = self._align.process(frames)
+            if self._queues is not None:
+                c, d = self._next_pair()
+            else:
+                frames = self._pipe.wait_for_frames(self.cfg.timeout_ms)
+                if self._align is not None:
+                    frames = self._align.process(frames)
+                c, d = frames.get_color_frame(), frames.get_depth_frame()
         except RuntimeError as e:
             where = f"the recording {self.cfg.playback} ended or" if self.cfg.playback else ""
             raise MMPAError(f"no RealSense frame: {where} {e}".replace("  ", " ")) from e
-        c, d = frames.get_color_frame(), frames.get_depth_frame()
         if not c or not d:
             raise MMPAError("the RealSense frameset lacks a colour or a depth frame")
         color = np.asanyarray(c.get_data()).copy()
@@ -141,16 +180,46 @@ class RealSenseCamera:
         depth = np.asanyarray(d.get_data()).astype(np.float32) * self.depth_scale
         return RGBDFrame(color, depth, self._intrinsics, c.get_timestamp() / 1000.0)
 
+    def _next_pair(self) -> tuple[Any, Any]:
+        """The next depth and colour frames with the same frame number (queue mode)."""
+        assert self._queues is not None
+        t = self.cfg.timeout_ms
+        d = self._queues["stream.depth"].wait_for_frame(t)
+        c = self._queues["stream.color"].wait_for_frame(t)
+        while d.get_frame_number() != c.get_frame_number():  # one of them was dropped
+            if d.get_frame_number() < c.get_frame_number():
+                d = self._queues["stream.depth"].wait_for_frame(t)
+            else:
+                c = self._queues["stream.color"].wait_for_frame(t)
+        return c, d
+
     def close(self) -> None:
         if not self._closed:
-            self._pipe.stop()
             self._closed = True
+            if self._pipe is not None:
+                self._pipe.stop()
+            for sensor in self._sensors:
+                sensor.stop()
+                sensor.close()
 
     def __enter__(self) -> RealSenseCamera:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _aligned(dprof: Any, cprof: Any) -> bool:
+    """Depth already aligned to colour: the same intrinsics and identity extrinsics (then
+    ``rs.align`` would only re-project it and move ~5 % of the pixels by one)."""
+    di, ci = dprof.get_intrinsics(), cprof.get_intrinsics()
+    ext = dprof.get_extrinsics_to(cprof)
+    return bool(
+        (di.width, di.height, di.fx, di.fy, di.ppx, di.ppy)
+        == (ci.width, ci.height, ci.fx, ci.fy, ci.ppx, ci.ppy)
+        and np.allclose(ext.rotation, np.eye(3).ravel())
+        and np.allclose(ext.translation, 0.0)
+    )
 
 
 def _rs_intrinsics(rs: Any, k: CameraIntrinsics) -> Any:
