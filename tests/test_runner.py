@@ -109,3 +109,18 @@ def test_markdown_table_escapes_pipes_in_cells():
     cols = [len(re.split(r"(?<!\\)\|", line)) for line in lines]
     assert len(set(cols)) == 1 and cols[0] == 4  # "", two cells, ""
     assert "grasping \\| detected" in lines[0] and "0.500" in lines[2] and "–" in lines[3]
+
+
+def test_executor_options_only_for_experiments_that_run_trials_on_one(toy, tmp_path):
+    """--workers/--executor/--resume on an experiment that runs in one process is refused
+    (it would silently run sequentially), naming the experiments that take them."""
+    with pytest.raises(ConfigError, match=r"--workers.*\bipe\b"):
+        rn.run_experiment("toy", tmp_path, workers=2)
+    with pytest.raises(ConfigError, match="--resume"):
+        rn.run_experiment("toy", tmp_path, resume=True)
+    res = CliRunner().invoke(
+        app, ["experiment", "toy", "--out", str(tmp_path), "--workers", "2", "--trials", "1"]
+    )
+    assert res.exit_code == 2 and "one process" in res.output
+    res = CliRunner().invoke(app, ["experiment", "toy", "--out", str(tmp_path), "--workers", "0"])
+    assert res.exit_code == 2  # typer's min=1

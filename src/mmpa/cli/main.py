@@ -178,6 +178,18 @@ def experiment(
     profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    workers: Annotated[
+        int, typer.Option(help="Trials in this many processes (or Ray CPUs).", min=1)
+    ] = 1,
+    executor: Annotated[
+        str, typer.Option(help="Where trials run: local (processes) or ray.")
+    ] = "local",
+    ray_address: Annotated[
+        str | None, typer.Option(help="Ray cluster to connect to (--executor ray).")
+    ] = None,
+    resume: Annotated[
+        bool, typer.Option("--resume", help="Keep the finished trials in --out; run the rest.")
+    ] = False,
 ) -> None:
     """Reproduce a paper table or figure: writes results.csv, report.md, plots, config.yaml."""
     from mmpa.experiments.runner import EXPERIMENTS, run_experiment
@@ -213,6 +225,10 @@ def experiment(
                 config=config,
                 overrides=set_ or [],
                 progress=progress,
+                workers=workers,
+                executor=executor,
+                ray_address=ray_address,
+                resume=resume,
             )
     except MMPAError as e:
         fail(e)

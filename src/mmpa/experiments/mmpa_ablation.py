@@ -12,8 +12,16 @@ from typing import Literal
 import numpy as np
 
 from mmpa.experiments import paper000
-from mmpa.experiments.mmpa_common import PAPER_BETA, MMPAExperimentConfig, ipe_stats, ipe_trials
+from mmpa.experiments.mmpa_common import (
+    PAPER_BETA,
+    MMPAExperimentConfig,
+    TrialGroup,
+    ipe_stats,
+    run_trial_groups,
+)
 from mmpa.experiments.runner import Context, Outcome, markdown_table
+
+PARALLEL_TRIALS = True
 
 PAPER = "paper 000 Appendix A, Tables A.1-A.3 (alpha) and A.4-A.6 (beta)"
 
@@ -25,9 +33,7 @@ class Config(MMPAExperimentConfig):
 
 def run(cfg: Config, ctx: Context) -> Outcome:
     is_alpha = cfg.experiment == "ablation-alpha"
-    rows: list[dict] = []
-    n_runs = len(cfg.levels) * len(cfg.sites)
-    j = 0
+    groups = []
     for site in cfg.sites:
         for lev in cfg.levels:
             ipe = cfg.automation.ipe
@@ -42,13 +48,9 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             else:
                 ipe = ipe.model_copy(update={"beta": paper000.BETAS[site][lev - 1]})
             auto = cfg.automation.model_copy(update={"ipe": ipe})
-
-            def prog(stage: str, frac: float, j: int = j, lev: int = lev) -> None:
-                ctx.progress(f"level {lev} {stage}", (j + frac) / n_runs)
-
-            r, _ = ipe_trials(cfg, prog, automation=auto, sites=[site], label={"level": lev})
-            rows += r
-            j += 1
+            groups.append(TrialGroup({"level": lev}, [site], auto))
+    res = run_trial_groups(cfg, ctx.progress, groups, executor=ctx.executor)
+    rows = [r for g in res for r in g[0]]
     table, summary = [], {}
     paper = paper000.TABLE_A_ALPHA if is_alpha else paper000.TABLE_A_BETA
     for site in cfg.sites:

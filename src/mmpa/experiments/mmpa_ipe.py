@@ -12,12 +12,15 @@ from mmpa.experiments import paper000
 from mmpa.experiments.mmpa_common import (
     PAPER_BETA,
     MMPAExperimentConfig,
-    Progress,
+    TrialGroup,
     ipe_stats,
-    ipe_trials,
+    run_trial_groups,
 )
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats, write_csv
 from mmpa.missions.mmpa import AutomationConfig
+
+#: the runner may run this experiment's trials on an executor (``--workers``, ``--executor``)
+PARALLEL_TRIALS = True
 
 PAPER = "paper 000 Table 3, Fig. 8 and Fig. 9 (IPE accuracy, iterations, registration time)"
 
@@ -27,31 +30,39 @@ class Config(MMPAExperimentConfig):
     paper_method: bool = True
 
 
-def paper_method_trials(
-    cfg: MMPAExperimentConfig, progress: Progress, *, execute: bool = False
-) -> tuple[list[dict], list[dict]]:
+def paper_method_groups(cfg: MMPAExperimentConfig, execute: bool = False) -> list[TrialGroup]:
     """The same trials (same seed: the same teaching and parks) with the paper's own
     automation settings (:meth:`AutomationConfig.paper`, the paper's beta per site); rows
     labelled ``method="paper"``."""
-    rows: list[dict] = []
-    iters: list[dict] = []
-    for i, site in enumerate(cfg.sites):
+    groups = []
+    for site in cfg.sites:
         beta = PAPER_BETA.get(site) if cfg.beta_per_site else cfg.automation.ipe.beta
-        r, it = ipe_trials(
-            cfg,
-            lambda stage, f, i=i: progress(f"paper method, {stage}", (i + f) / len(cfg.sites)),
-            execute=execute,
-            automation=AutomationConfig.paper(beta=beta),
-            sites=[site],
-            label={"method": "paper"},
+        groups.append(
+            TrialGroup(
+                {"method": "paper"}, [site], AutomationConfig.paper(beta=beta), execute=execute
+            )
         )
-        rows += r
-        iters += it
-    return rows, iters
+    return groups
 
 
-def _halves(progress: Progress, second: bool) -> Progress:
-    return lambda stage, f: progress(stage, 0.5 * f + (0.5 if second else 0.0))
+def method_trials(
+    cfg: MMPAExperimentConfig,
+    paper_method: bool,
+    ctx: Context,
+    execute: bool = False,
+    tmma: bool = False,
+) -> tuple[list[dict], list[dict], list[dict]]:
+    """mmpa's trials (with TMMA first when ``tmma``) and (``paper_method``) the paper
+    method's on the same parks, all on ``ctx.executor`` at once: ``(rows, paper rows,
+    iteration rows)``."""
+    groups = [TrialGroup({"method": "mmpa"}, execute=execute, tmma=tmma)]
+    if paper_method:
+        groups += paper_method_groups(cfg, execute)
+    res = run_trial_groups(cfg, ctx.progress, groups, executor=ctx.executor)
+    rows, iters = res[0]
+    prows = [r for g in res[1:] for r in g[0]]
+    iters += [r for g in res[1:] for r in g[1]]
+    return rows, prows, iters
 
 
 def summarize_sites(rows: list[dict], sites: list[str]) -> dict:
@@ -70,12 +81,7 @@ def summarize_sites(rows: list[dict], sites: list[str]) -> dict:
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
-    prog = _halves(ctx.progress, False) if cfg.paper_method else ctx.progress
-    rows, iters = ipe_trials(cfg, prog, label={"method": "mmpa"})
-    prows: list[dict] = []
-    if cfg.paper_method:
-        prows, piters = paper_method_trials(cfg, _halves(ctx.progress, True))
-        iters += piters
+    rows, prows, iters = method_trials(cfg, cfg.paper_method, ctx)
     write_csv(ctx.out / "iterations.csv", iters)
     S = summarize_sites(rows, cfg.sites)
     P = summarize_sites(prows, cfg.sites) if prows else None

@@ -12,9 +12,11 @@ from __future__ import annotations
 import numpy as np
 
 from mmpa.experiments import paper000
-from mmpa.experiments.mmpa_common import MMPAExperimentConfig, TwinSite, offset_row
+from mmpa.experiments.mmpa_common import MMPAExperimentConfig, TrialGroup, run_trial_groups
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.sim.error_model import PARKING_TABLE2
+
+PARALLEL_TRIALS = True
 
 PAPER = "paper 000 Table 2 (initial parking pose accuracy)"
 
@@ -33,21 +35,10 @@ class Config(MMPAExperimentConfig):
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
-    rows: list[dict] = []
     n = cfg.n_trials()
-    for j, site in enumerate(cfg.sites):
-        with TwinSite(cfg, site) as ts:
-            for i in range(n):
-                ctx.progress(f"site {site}: trial {i + 1}/{n}", (j * n + i) / (n * len(cfg.sites)))
-                ts.park()
-                rows.append(
-                    {
-                        "site": site,
-                        "trial": i,
-                        "mode": cfg.parking,
-                        **offset_row(ts.parking_truth()),
-                    }
-                )
+    # every parking is a trial of its own (seeded on its own, runs on ctx.executor)
+    res = run_trial_groups(cfg, ctx.progress, [TrialGroup()], kind="park", executor=ctx.executor)
+    rows = res[0][0]
     table = []
     summary: dict = {}
     for site in cfg.sites:

@@ -12,9 +12,11 @@ from __future__ import annotations
 import numpy as np
 
 from mmpa.experiments import paper000
-from mmpa.experiments.mmpa_common import MMPAExperimentConfig, ipe_trials
-from mmpa.experiments.mmpa_ipe import _halves, paper_method_trials
+from mmpa.experiments.mmpa_common import MMPAExperimentConfig
+from mmpa.experiments.mmpa_ipe import method_trials
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats, write_csv
+
+PARALLEL_TRIALS = True
 
 PAPER = "paper 000 Table 4 (needle-tip distance bias, TMMA vs MMPA) and Fig. 10"
 
@@ -37,12 +39,8 @@ def _path_summary(r: list[dict]) -> dict:
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
-    prog = _halves(ctx.progress, False) if cfg.paper_method else ctx.progress
-    rows, iters = ipe_trials(cfg, prog, execute=True, tmma=cfg.tmma, label={"method": "mmpa"})
-    prows: list[dict] = []
-    if cfg.paper_method:
-        prows, piters = paper_method_trials(cfg, _halves(ctx.progress, True), execute=True)
-        iters += piters
+    # the paper method runs no TMMA: the same parks, the TMMA figures are mmpa's rows'
+    rows, prows, iters = method_trials(cfg, cfg.paper_method, ctx, execute=True, tmma=cfg.tmma)
     write_csv(ctx.out / "iterations.csv", iters)
     table, summary = [], {}
     nan = float("nan")

@@ -12,9 +12,16 @@ from __future__ import annotations
 from pydantic import Field
 
 from mmpa.experiments import paper000
-from mmpa.experiments.mmpa_common import MMPAExperimentConfig, ipe_stats, ipe_trials
+from mmpa.experiments.mmpa_common import (
+    MMPAExperimentConfig,
+    TrialGroup,
+    ipe_stats,
+    run_trial_groups,
+)
 from mmpa.experiments.runner import Context, Outcome, markdown_table
 from mmpa.sim.scene import DeskItem, SceneConfig, load_scene
+
+PARALLEL_TRIALS = True
 
 PAPER = "paper 000 Appendix A.3, Table A.7 (IPE on plain and textured scenes)"
 
@@ -65,8 +72,8 @@ def scene_variant(base: SceneConfig, name: str) -> SceneConfig:
 
 def run(cfg: Config, ctx: Context) -> Outcome:
     base = load_scene(cfg.scene)
-    rows: list[dict] = []
-    for j, name in enumerate(cfg.scenes):
+    groups = []
+    for name in cfg.scenes:
         if name not in SCENES:
             from mmpa.errors import UnknownNameError
 
@@ -74,20 +81,10 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         _, color = SCENES[name]
         ipe = cfg.automation.ipe.model_copy(update={"use_color": color})
         auto = cfg.automation.model_copy(update={"ipe": ipe})
-        c = cfg.model_copy(update={"trials": cfg.n_trials(10)})
-
-        def prog(stage: str, frac: float, j: int = j, name: str = name) -> None:
-            ctx.progress(f"scene {name}: {stage}", (j + frac) / len(cfg.scenes))
-
-        r, _ = ipe_trials(
-            c,
-            prog,
-            automation=auto,
-            sites=["1"],
-            scene=scene_variant(base, name),
-            label={"scene": name},
-        )
-        rows += r
+        groups.append(TrialGroup({"scene": name}, ["1"], auto, scene_variant(base, name)))
+    c = cfg.model_copy(update={"trials": cfg.n_trials(10)})
+    res = run_trial_groups(c, ctx.progress, groups, executor=ctx.executor)
+    rows = [r for g in res for r in g[0]]
     table, summary = [], {}
     for name in cfg.scenes:
         r = [x for x in rows if x["scene"] == name]

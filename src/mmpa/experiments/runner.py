@@ -7,6 +7,8 @@ breaks another), builds the experiment's config from defaults, an optional YAML 
 
 - ``config.yaml``: the final configuration;
 - ``results.csv``: one row per trial (the union of the rows' keys as columns);
+- ``rows.jsonl`` and ``taught/``: the finished trials as they arrive and the taught task
+  bundles (experiments that run their trials on an executor, below);
 - ``summary.json``: the headline figures (also printed by the CLI);
 - ``report.md``: our figures next to the paper's;
 - any PNG plots the experiment writes into ``ctx.out``.
@@ -16,7 +18,12 @@ An experiment module provides
 - ``Config``: a pydantic model with at least ``seed: int`` and ``trials: int | None``
   (``None`` means the paper's count);
 - ``PAPER``: a one-line citation of the reproduced table/figure;
-- ``run(cfg: Config, ctx: Context) -> Outcome``.
+- ``run(cfg: Config, ctx: Context) -> Outcome``;
+- optionally ``PARALLEL_TRIALS = True``: its trials run on ``ctx.executor``
+  (:mod:`mmpa.experiments.executor`): ``workers`` local processes or Ray tasks, each trial
+  seeded on its own so that ``results.csv`` is the same whatever the executor and worker
+  count (but for the ``trial_s`` and ``worker_rss_mb`` columns); ``resume`` completes an
+  interrupted run from its journal.
 """
 
 from __future__ import annotations
@@ -77,6 +84,7 @@ class Context:
     name: str
     out: Path
     progress: Progress = field(default=lambda stage, frac: None)
+    executor: Any = None  # an mmpa.experiments.executor.Executor (None: in this process)
 
 
 @dataclass
@@ -121,12 +129,26 @@ def run_experiment(
     config: str | Path | None = None,
     overrides: Sequence[str] = (),
     progress: Progress | None = None,
+    workers: int = 1,
+    executor: str = "local",
+    ray_address: str | None = None,
+    resume: bool = False,
 ) -> Outcome:
     """Run experiment ``name`` and write its run folder (see the module docstring).
 
     ``profile`` picks the twin's error model profile (``errors.profile``; later ``--set
-    errors....`` overrides apply on top); the summary and the report record the profile."""
+    errors....`` overrides apply on top); the summary and the report record the profile.
+    ``workers``, ``executor`` (``local``/``ray``), ``ray_address``: where the trials run
+    (experiments with ``PARALLEL_TRIALS``); ``resume``: keep the trials already finished in
+    ``out`` (same configuration but for ``trials``) and run the rest."""
     mod = experiment_module(name)
+    parallel = getattr(mod, "PARALLEL_TRIALS", False)
+    if not parallel and (workers != 1 or executor != "local" or ray_address or resume):
+        raise ConfigError(
+            f"experiment {name!r} runs its trials in one process: --workers, --executor, "
+            "--ray-address and --resume apply to "
+            + ", ".join(k for k, v in EXPERIMENTS.items() if _parallel(v))
+        )
     sets = []
     if profile is not None:
         if "errors" not in mod.Config.model_fields:
@@ -143,11 +165,21 @@ def run_experiment(
         sets.append(f"experiment={name}")
     cfg: BaseModel = load_config(mod.Config, config, [*sets, *overrides])
     out = Path(out)
+    if resume:
+        _check_resumable(cfg, out / "config.yaml")
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out / "config.yaml")
     ctx = Context(name=name, out=out, progress=progress or (lambda stage, frac: None))
     t0 = time.perf_counter()
-    outcome: Outcome = mod.run(cfg, ctx)
+    if parallel:
+        from mmpa.experiments.executor import make_executor
+
+        with make_executor(executor, workers, out, resume, ray_address) as ex:
+            ctx.executor = ex
+            outcome: Outcome = mod.run(cfg, ctx)
+        outcome.summary.setdefault("executor", ex.describe())
+    else:
+        outcome = mod.run(cfg, ctx)
     wall = time.perf_counter() - t0
     outcome.summary.setdefault("wall_seconds", round(wall, 2))
     errors = getattr(cfg, "errors", None)
@@ -160,6 +192,31 @@ def run_experiment(
         head += f"Twin error model: profile `{errors.profile}` (seed {errors.seed}).\n\n"
     (out / "report.md").write_text(head + outcome.report.rstrip() + "\n")
     return outcome
+
+
+def _parallel(module_path: str) -> bool:
+    try:
+        return bool(getattr(importlib.import_module(module_path), "PARALLEL_TRIALS", False))
+    except ImportError:
+        return False
+
+
+def _check_resumable(cfg: BaseModel, path: Path) -> None:
+    """A run folder can be resumed with ``cfg`` if its ``config.yaml`` differs at most in
+    ``trials`` (a trial's row does not depend on how many there are)."""
+    from mmpa.yamlio import load_yaml
+
+    if not path.exists():
+        return  # nothing to resume: a fresh run
+    old = load_yaml(path)
+    new = cfg.model_dump(mode="json")  # as save_config writes it
+    old_d = old if isinstance(old, dict) else {}
+    diff = sorted(k for k in set(old_d) | set(new) if k != "trials" and old_d.get(k) != new.get(k))
+    if diff:
+        raise ConfigError(
+            f"{path}: --resume needs the run's configuration (but for trials); "
+            f"these fields differ: {', '.join(diff)}"
+        )
 
 
 def write_csv(path: Path, rows: Iterable[dict[str, Any]]) -> None:

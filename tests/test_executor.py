@@ -1,0 +1,190 @@
+"""Trials on executors (issue 21): each trial seeded on its own, the same rows whatever the
+executor and worker count, streamed to a journal, resumable."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import time
+
+import pytest
+
+from mmpa.errors import ConfigError, MMPAError
+from mmpa.experiments import executor as ex
+
+# ---------------------------------------------------------------------------------------
+# the executors on toy jobs (no simulator)
+
+
+def slow_square(x: int, delay: float) -> dict:
+    """A job that finishes later the larger ``delay``: the early jobs finish last."""
+    time.sleep(delay)
+    return {"x": x, "sq": x * x, "pid": os.getpid()}
+
+
+def failing(x: int) -> int:
+    raise ValueError(f"bad input {x}")
+
+
+def _jobs(n: int):
+    return [({"site": "1", "trial": i}, slow_square, (i, 0.05 * (n - i))) for i in range(n)]
+
+
+def test_serial_journal_and_order(tmp_path):
+    seen = []
+    with ex.SerialExecutor(tmp_path) as e:
+        recs = e.run(_jobs(3), lambda done, total, rec: seen.append((done, total, rec["key"])))
+    assert [r["result"]["sq"] for r in recs] == [0, 1, 4]
+    assert [s[:2] for s in seen] == [(1, 3), (2, 3), (3, 3)]
+    lines = (tmp_path / ex.JOURNAL).read_text().splitlines()
+    assert [json.loads(x)["key"]["trial"] for x in lines] == [0, 1, 2]
+    assert all(r["worker_rss_mb"] > 10 and r["trial_s"] >= 0 for r in recs)
+
+
+def test_process_executor_returns_job_order_from_other_processes(tmp_path):
+    order = []
+    with ex.ProcessExecutor(2, tmp_path) as e:
+        recs = e.run(_jobs(4), lambda done, total, rec: order.append(rec["key"]["trial"]))
+    assert [r["result"]["x"] for r in recs] == [0, 1, 2, 3]  # job order, not finish order
+    assert sorted(order) == [0, 1, 2, 3]
+    pids = {r["result"]["pid"] for r in recs}
+    assert os.getpid() not in pids and len(pids) == 2
+
+
+def test_resume_skips_journaled_trials_and_ignores_a_torn_last_line(tmp_path):
+    with ex.SerialExecutor(tmp_path) as e:
+        first = e.run(_jobs(2))
+    with open(tmp_path / ex.JOURNAL, "a") as f:
+        f.write('{"key": {"site": "1", "tri')  # killed while writing
+    calls = []
+    with ex.SerialExecutor(tmp_path, resume=True) as e:
+        recs = e.run(_jobs(3), lambda done, total, rec: calls.append(rec["key"]["trial"]))
+    assert calls == [2]  # only the missing trial ran
+    assert recs[:2] == first and recs[2]["result"]["sq"] == 4
+    # without resume the journal starts over
+    with ex.SerialExecutor(tmp_path) as e:
+        e.run(_jobs(1))
+    assert len((tmp_path / ex.JOURNAL).read_text().splitlines()) == 1
+
+
+def test_worker_errors_name_the_trial(tmp_path):
+    with ex.ProcessExecutor(2, tmp_path) as e, pytest.raises(MMPAError, match="bad input 7"):
+        e.run([({"site": "2", "trial": 7}, failing, (7,))])
+    with pytest.raises(ConfigError, match="workers"):
+        ex.make_executor("local", 0)
+    with pytest.raises(ConfigError, match="valid: local, ray"):
+        ex.make_executor("slurm", 2)
+    with pytest.raises(ConfigError, match="--executor ray"):
+        ex.make_executor("local", 2, address="127.0.0.1:6379")
+
+
+def test_plain_keeps_nan_and_drops_numpy_types():
+    import math
+
+    import numpy as np
+
+    v = ex.plain({"a": np.float64(math.nan), "b": [np.int64(3), np.array([1.5])], "c": True})
+    assert math.isnan(v["a"]) and type(v["a"]) is float
+    assert v["b"] == [3, [1.5]] and type(v["b"][0]) is int
+
+
+# ---------------------------------------------------------------------------------------
+# the ipe experiment in the twin (one site, no paper method, 2 trials)
+
+SIM = {"MUJOCO_GL": "osmesa", "PYOPENGL_PLATFORM": "osmesa"}
+OVERRIDES = ["sites=[1]", "paper_method=false"]
+VARYING = {"trial_s", "worker_rss_mb", "compute_s", "register_s_mean"}  # time and memory
+
+
+def _rows(folder) -> list[dict]:
+    with open(folder / "results.csv") as f:
+        return [{k: v for k, v in r.items() if k not in VARYING} for r in csv.DictReader(f)]
+
+
+@pytest.fixture(scope="module")
+def serial_run(tmp_path_factory):
+    from mmpa.experiments.runner import run_experiment
+
+    for k, v in SIM.items():
+        os.environ.setdefault(k, v)
+    out = tmp_path_factory.mktemp("serial")
+    run_experiment("ipe", out, trials=2, overrides=OVERRIDES)
+    return out
+
+
+def test_a_trial_alone_gives_its_row_of_the_full_run(serial_run):
+    from mmpa.experiments import mmpa_ipe
+    from mmpa.experiments.mmpa_common import TrialGroup, run_trial_groups
+    from mmpa.experiments.runner import _jsonable
+
+    cfg = mmpa_ipe.Config(trials=2, sites=["1"], paper_method=False)
+    # a fresh twin: taught anew, trial 1 only (nothing ran before it in that world)
+    ((rows, _),) = run_trial_groups(
+        cfg, lambda s, f: None, [TrialGroup({"method": "mmpa"}, trials=[1])]
+    )
+    alone = {k: _jsonable(v) for k, v in rows[0].items() if k not in VARYING}
+    full = _rows(serial_run)
+    assert [r["trial"] for r in full] == ["0", "1"]
+    assert full[0]["park_tx"] != full[1]["park_tx"]  # the trials differ
+    assert {k: ("" if v is None else str(v)) for k, v in alone.items()} == full[1]
+
+
+def test_two_workers_give_the_rows_of_one(serial_run, tmp_path):
+    from mmpa.experiments.runner import run_experiment
+
+    out = run_experiment("ipe", tmp_path, trials=2, overrides=OVERRIDES, workers=2)
+    assert out.summary["executor"] == "local x2"
+    assert _rows(tmp_path) == _rows(serial_run)
+    with open(tmp_path / "results.csv") as f:
+        mem = [float(r["worker_rss_mb"]) for r in csv.DictReader(f)]
+    assert all(100 < m < 8000 for m in mem)
+
+
+class InterruptError(Exception):
+    pass
+
+
+def test_an_interrupted_run_resumed_gives_the_rows_of_a_whole_one(serial_run, tmp_path):
+    from mmpa.experiments.runner import run_experiment
+
+    def stop_after_first(stage: str, frac: float) -> None:
+        if "done" in stage and "trial 1/2" in stage:
+            raise InterruptError(stage)
+
+    with pytest.raises(InterruptError):
+        run_experiment("ipe", tmp_path, trials=2, overrides=OVERRIDES, progress=stop_after_first)
+    assert not (tmp_path / "results.csv").exists()
+    kept = [json.loads(x) for x in (tmp_path / ex.JOURNAL).read_text().splitlines()]
+    assert [r["key"]["trial"] for r in kept] == [0]
+    stages = []
+    run_experiment(
+        "ipe",
+        tmp_path,
+        trials=2,
+        overrides=OVERRIDES,
+        resume=True,
+        progress=lambda s, f: stages.append(s),
+    )
+    assert not any("teaching" in s for s in stages)  # the taught bundle was reused
+    assert _rows(tmp_path) == _rows(serial_run)
+    with open(tmp_path / "results.csv") as f:
+        first = next(csv.DictReader(f))
+    assert float(first["trial_s"]) == pytest.approx(kept[0]["trial_s"])  # not run again
+
+
+def test_resume_refuses_another_configuration(tmp_path):
+    from mmpa.experiments.runner import run_experiment
+
+    (tmp_path / "config.yaml").write_text("seed: 5\n")
+    with pytest.raises(ConfigError, match=r"config\.yaml.*seed"):
+        run_experiment("ipe", tmp_path, trials=1, overrides=OVERRIDES, resume=True)
+
+
+def test_ray_gives_the_rows_of_one_process(serial_run, tmp_path):
+    pytest.importorskip("ray")  # the dev extra has it
+    from mmpa.experiments.runner import run_experiment
+
+    out = run_experiment("ipe", tmp_path, trials=2, overrides=OVERRIDES, workers=2, executor="ray")
+    assert out.summary["executor"] == "ray x2"
+    assert _rows(tmp_path) == _rows(serial_run)
