@@ -1,5 +1,6 @@
 """Overhead of recording a twin run to a ROS 2 bag (run on purpose:
-``python benchmarks/bench_record.py [--repeats N]``).
+``python benchmarks/bench_record.py [--repeats N] [--view]``; ``--view``: the Foxglove live
+view with no client connected instead of a bag).
 
 The run: the demo's drive without the MMPA stage -- Site 0 -> Site 1 on the enhanced AMCL
 (``navigate``: scans at 10 Hz, control at 20 Hz), then ``CAPTURES`` RGB-D captures at the
@@ -54,8 +55,11 @@ def _timed_hooks() -> None:
         setattr(Recorder, name, timed)
 
 
-def one_run(bag: Path | None) -> tuple[float, np.ndarray, np.ndarray, dict[str, int]]:
-    """Wall seconds of the drive + captures, final truth, final estimate, bag counts."""
+def one_run(
+    bag: Path | None, view: bool = False
+) -> tuple[float, np.ndarray, np.ndarray, dict[str, int]]:
+    """Wall seconds of the drive + captures, final truth, final estimate, sink counts.
+    ``view``: the sink is the Foxglove live view with no client instead of a bag."""
     from mmpa.bags import BagWriter, Recorder
     from mmpa.localization.localizer import make_localizer
     from mmpa.navigation.mission import (
@@ -76,7 +80,12 @@ def one_run(bag: Path | None) -> tuple[float, np.ndarray, np.ndarray, dict[str, 
         costmap = CostMap(twin_nav_map(world), cfg.planner)
         _ = world.camera  # the renderer is built outside the timing, in both runs
         t0 = time.perf_counter()
-        writer = BagWriter(bag) if bag is not None else None
+        if view:
+            from mmpa.bags.view import FoxgloveView
+
+            writer = FoxgloveView(port=0)
+        else:
+            writer = BagWriter(bag) if bag is not None else None
         w = world
         loc = make_localizer("enhanced", grid, laser_pose2d(world), np.random.default_rng(0))
         if writer is not None:
@@ -99,6 +108,9 @@ def one_run(bag: Path | None) -> tuple[float, np.ndarray, np.ndarray, dict[str, 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument(
+        "--view", action="store_true", help="measure the live view (no client) instead of a bag"
+    )
     args = ap.parse_args()
     _timed_hooks()
     try:
@@ -109,10 +121,10 @@ def main() -> None:
                 plain.append(wall)
                 bag = Path(d) / f"run{i}.mcap"
                 HOOK_SECONDS[0] = 0.0
-                wall, truth1, est1, counts = one_run(bag)
+                wall, truth1, est1, counts = one_run(bag, view=args.view)
                 recorded.append(wall)
                 hooks.append(HOOK_SECONDS[0])
-                size = bag.stat().st_size
+                size = 0 if args.view else bag.stat().st_size
                 same = np.array_equal(truth0, truth1) and np.array_equal(est0, est1)
                 print(
                     f"repeat {i}: plain {plain[-1]:.2f} s, recorded {recorded[-1]:.2f} s "
@@ -125,7 +137,8 @@ def main() -> None:
             f"recorder work: median {h:.2f} s = {100 * h / p:.1f} % of the plain run "
             "(load-independent estimate of the overhead)"
         )
-        print(f"bag: {size / 1e6:.1f} MB, {sum(counts.values())} messages: {counts}")
+        what = "view (no client): serialized" if args.view else f"bag: {size / 1e6:.1f} MB,"
+        print(f"{what} {sum(counts.values())} messages: {counts}")
         print(
             f"median wall: plain {p:.2f} s, recorded {r:.2f} s -> overhead {100 * over:+.1f} % "
             f"(target <= {100 * TARGET_OVERHEAD:.0f} %): "

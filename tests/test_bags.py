@@ -521,3 +521,13 @@ def test_foxglove_layout_names_only_recorded_topics() -> None:
     assert set(layout["configById"]) >= {"3D!mmpa3d", "Image!mmpacolor", "Plot!mmpaxy"}
     named = set(re.findall(r'"(/[a-z_/]+)', text))
     assert named and named <= set(TOPICS.values()), named - set(TOPICS.values())
+
+
+def test_reading_topics_absent_from_the_bag_gives_empty_lists(tmp_path) -> None:
+    from mmpa.backends.bag import read_messages
+
+    path = tmp_path / "one.mcap"
+    with BagWriter(path) as w:
+        w.write("/tf", rm.tf_message([rm.transform_stamped(1.0, "map", "odom", np.eye(4))]), 1.0)
+    assert read_messages(path, ["/cam/rgb"]) == {"/cam/rgb": []}  # not every topic of the bag
+    assert len(read_messages(path, ["/tf", "/cam/rgb"])["/tf"]) == 1

@@ -88,6 +88,8 @@ def read_messages(path: str | Path, topics: Iterable[str]) -> dict[str, list[Any
     try:
         with reader:
             conns = [c for c in reader.connections if c.topic in wanted]
+            if not conns:  # rosbags reads every topic when given no connection
+                return out
             for conn, _t, raw in reader.messages(connections=conns):
                 out[conn.topic].append(reader.deserialize(raw, conn.msgtype))
     except MMPAError:
