@@ -313,12 +313,14 @@ from mmpa.cli import calibrate as _calibrate  # noqa: E402  (registers calibrate
 from mmpa.cli import navigation as _navigation  # noqa: E402  (registers navigate, map)
 from mmpa.cli import register as _register  # noqa: E402  (registers register)
 from mmpa.cli import robot as _robot  # noqa: E402  (registers robot)
+from mmpa.cli import sweep as _sweep  # noqa: E402  (registers sweep)
 
 _navigation.register(app)
 _bags.register(app)
 _robot.register(app)
 _calibrate.register(app)
 _register.register(app)
+_sweep.register(app)
 
 
 def main() -> None:

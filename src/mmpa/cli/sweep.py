@@ -1,0 +1,78 @@
+"""``mmpa sweep FILE.yaml --out DIR``: a parameter sweep over experiments (the runner logic
+lives in :mod:`mmpa.experiments.sweep`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+from mmpa.cli.common import console, fail, out_dir
+from mmpa.errors import MMPAError
+
+__all__ = ["register", "sweep_cmd"]
+
+
+def sweep_cmd(
+    file: Annotated[Path, typer.Argument(help="Sweep file (YAML; see docs/sweep_example.yaml).")],
+    out: Annotated[
+        Path | None, typer.Option(help="Sweep folder (default runs/sweep-FILE_STEM).")
+    ] = None,
+    workers: Annotated[
+        int, typer.Option(help="Trials of a point in this many processes (or Ray CPUs).", min=1)
+    ] = 1,
+    executor: Annotated[
+        str, typer.Option(help="Where trials run: local (processes) or ray.")
+    ] = "local",
+    ray_address: Annotated[
+        str | None, typer.Option(help="Ray cluster to connect to (--executor ray).")
+    ] = None,
+    resume: Annotated[
+        bool,
+        typer.Option(
+            "--resume", help="Keep the finished points and trials in --out; run the rest."
+        ),
+    ] = False,
+) -> None:
+    """Sweep config fields over experiments: sweep.csv, sweep.md and one plot per field."""
+    from mmpa.experiments.sweep import check_run_options, load_sweep, run_sweep
+
+    out = out or Path("runs") / f"sweep-{file.stem}"
+    try:
+        spec = load_sweep(file)
+        check_run_options(workers, executor)
+        out_dir(out)
+        with Progress(
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TimeElapsedColumn(),
+            console=console,
+            transient=True,
+        ) as bar:
+            task = bar.add_task("sweep", total=1.0)
+
+            def progress(stage: str, frac: float) -> None:
+                bar.update(task, description=stage[:100], completed=max(0.0, min(frac, 1.0)))
+
+            result = run_sweep(
+                spec,
+                out,
+                workers=workers,
+                executor=executor,
+                ray_address=ray_address,
+                resume=resume,
+                progress=progress,
+            )
+    except MMPAError as e:
+        fail(e)
+    console.print(
+        f"mmpa sweep: {len(result.points)} points -> {out} ({', '.join(result.files)})",
+        highlight=False,
+    )
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``sweep`` to the root app."""
+    app.command("sweep")(sweep_cmd)
