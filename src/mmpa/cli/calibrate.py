@@ -14,7 +14,9 @@ from mmpa.errors import MMPAError
 
 __all__ = ["calibrate_app", "register"]
 
-calibrate_app = typer.Typer(help="Calibrations in the twin: hand-eye (ChArUco board).")
+calibrate_app = typer.Typer(
+    help="Calibrations in the twin: hand-eye (ChArUco board), lidar mount (a turn on the spot)."
+)
 
 _PROFILES = ("ideal", "reference", "realistic", "harsh")
 
@@ -50,6 +52,37 @@ def hand_eye_cmd(
         f"{s['error_trans_mm']:.3f} mm, {s['error_rot_deg']:.4f} deg against the true hand-eye "
         f"(board spread {s['residuals']['point_rms_mm']:.3f} mm RMS); wrote {out}/summary.json, "
         f"{out}/hand_eye.yaml and {out}/robot.yaml (use it: mmpa --robot {out}/robot.yaml ...)",
+        highlight=False,
+    )
+
+
+@calibrate_app.command("lidar-mount")
+def lidar_mount_cmd(
+    out: Annotated[Path, typer.Option(help="output folder (summary.json, robot.yaml)")],
+    site: Annotated[str, typer.Option(help="site where the robot turns on the spot")] = "0",
+    seed: Annotated[int, typer.Option(help="robot instance of the twin's error model", min=0)] = 0,
+    profile: Annotated[
+        str, typer.Option(help="error model profile: ideal, reference, realistic, harsh")
+    ] = "realistic",
+) -> None:
+    """Calibrate the lidar mount translation in the twin: one turn on the spot, every scan
+    matched against the map, a circle fit; compared with the TRUE mount; robot.yaml for
+    --robot."""
+    if profile not in _PROFILES:
+        raise typer.BadParameter(f"unknown profile {profile!r}; one of {list(_PROFILES)}")
+    os.environ.setdefault("MUJOCO_GL", "osmesa")
+    os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+    try:
+        from mmpa.experiments.calibrate import run_lidar_mount
+
+        with console.status("turning on the spot"):
+            s = run_lidar_mount(site, seed, profile, out)  # type: ignore[arg-type]
+    except MMPAError as e:
+        fail(e)
+    console.print(
+        f"lidar mount: error {s['error_mm']:.2f} mm against the true mount (nominal "
+        f"{s['nominal_error_mm']:.2f} mm; fit RMS {s['fit_rms_mm']:.2f} mm, {s['scans']} scans); "
+        f"wrote {out}/summary.json and {out}/robot.yaml (use it: mmpa --robot {out}/robot.yaml)",
         highlight=False,
     )
 
