@@ -19,3 +19,20 @@ def test_bring_your_own_arm() -> None:
     assert res.returncode == 0, res.stderr
     assert "tool moved 100.0 mm" in res.stdout  # the fake arm ended where the path ends
     assert "refused: joint path: joint 1 velocity" in res.stdout
+
+
+def test_ipe_on_recorded_frames() -> None:
+    import importlib.util
+
+    import numpy as np
+
+    spec = importlib.util.spec_from_file_location(
+        "ipe_example", ROOT / "examples" / "ipe_on_recorded_frames.py"
+    )
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = mod.main()
+    # the estimated camera motion agrees with the frames' recorded (cm-level) poses
+    assert out["err_mm"] < 5.0
+    assert 10.0 < 1e3 * np.linalg.norm(out["dT_C"][:3, 3]) < 50.0
+    np.testing.assert_allclose(out["dT_B"][3], [0, 0, 0, 1])
