@@ -6,9 +6,14 @@ import numpy as np
 import pytest
 
 from mmpa.errors import ConfigError, InvalidInputError, UnknownNameError
+from mmpa.experiments.perception_data import (
+    DatasetConfig,
+    load_dataset,
+    render_dataset,
+    save_dataset,
+)
 from mmpa.geometry import apply, inv
 from mmpa.perception import CLASSES
-from mmpa.perception.dataset import DatasetConfig, load_dataset, render_dataset, save_dataset
 from mmpa.perception.locate import (
     DepthMissingError,
     box_center_depth,
@@ -47,7 +52,11 @@ def test_dataset_is_labelled_and_reproducible(tiny, tmp_path):
 def test_segmentation_box_contains_the_true_projected_center():
     """The labelled box of an object in view holds the projection of its true center."""
     with SimWorld(site="0") as w:
-        from mmpa.perception.dataset import DESK_PARK, boxes_from_segmentation, random_table_scene
+        from mmpa.experiments.perception_data import (
+            DESK_PARK,
+            boxes_from_segmentation,
+            random_table_scene,
+        )
         from mmpa.servo.grasp import look_configuration
 
         w.reset(pose2d=np.array(DESK_PARK), settle=0.0)
@@ -99,7 +108,11 @@ def test_preprocessing_against_independent_computations():
 
 def test_locate_against_the_simulator_truth():
     with SimWorld(site="0") as w:
-        from mmpa.perception.dataset import DESK_PARK, boxes_from_segmentation, random_table_scene
+        from mmpa.experiments.perception_data import (
+            DESK_PARK,
+            boxes_from_segmentation,
+            random_table_scene,
+        )
         from mmpa.robot.kinematics import fk
         from mmpa.servo.grasp import look_configuration
 

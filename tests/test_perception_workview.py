@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mmpa.experiments.perception_data import Dataset, DatasetConfig, render_dataset
 from mmpa.perception import CLASSES
-from mmpa.perception.dataset import Dataset, DatasetConfig, render_dataset
 
 torch = pytest.importorskip("torch")
 
@@ -87,9 +87,9 @@ def test_target_success_and_recall_precision_count_by_hand():
 
 def test_desk_search_finds_the_legs_only_where_the_map_puts_them():
     from mmpa.experiments.mobile_manipulation import desk_front_legs, desk_in_scan
+    from mmpa.experiments.perception_data import DESK_PARK
     from mmpa.geometry import se2_to_T
     from mmpa.navigation.mission import laser_pose2d
-    from mmpa.perception.dataset import DESK_PARK
     from mmpa.sim.world import SimWorld
 
     with SimWorld(site="0") as w:
@@ -130,7 +130,7 @@ def test_servo_views_put_the_tcp_above_the_target_in_the_simulator():
     """Servo views (the tracking grasp's approach): after the arm takes the configuration,
     the simulator's TCP lies ``standoff`` in range above the target's top, within the jitter
     sideways, tool z pointing down; rendered servo views label the target."""
-    from mmpa.perception.dataset import (
+    from mmpa.experiments.perception_data import (
         DESK_PARK,
         _footprint,
         random_table_scene,
@@ -169,10 +169,10 @@ def test_turn_to_heading_aligns_the_true_base_on_the_estimate():
     only, the simulator's true heading ends within 0.01 rad of the goal heading (it starts
     0.35 rad off, about the most the desk search leaves) and the base stays in place."""
     from mmpa.experiments.mobile_manipulation import turn_to_heading
+    from mmpa.experiments.perception_data import DESK_PARK
     from mmpa.geometry import wrap_angle
     from mmpa.localization.localizer import make_localizer
     from mmpa.navigation.mission import laser_pose2d, twin_map
-    from mmpa.perception.dataset import DESK_PARK
     from mmpa.sim.world import SimWorld
 
     park = np.array(DESK_PARK)

@@ -75,7 +75,7 @@ def test_tracking_grasp_of_a_moving_ball(world):
 def _cleared_desk(world, lighting: str):
     """The robot parked at the grasp desk, every object off the desk, ``lighting`` set;
     returns ``(nominal robot, desk top z (map), T_map_arm_base)``."""
-    from mmpa.perception.dataset import DESK_PARK, desk_frame, random_table_scene
+    from mmpa.experiments.perception_data import DESK_PARK, desk_frame, random_table_scene
 
     world.reset(pose2d=np.asarray(DESK_PARK, float), settle=0.2)
     world.set_lighting(lighting)
@@ -227,7 +227,7 @@ def _bottle_under_the_first_view(world, cfg: GraspConfig):
     the yida bottle (water bottle score < 0.05). Runs the tracking grasp; returns its result
     and the bottle's height above the desk top 2 s after the lift (physics)."""
     from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, run_grasp
-    from mmpa.perception.dataset import _footprint
+    from mmpa.experiments.perception_data import _footprint
     from mmpa.perception.ssd import Detector
 
     rb, top, T_map_B = _cleared_desk(world, "high")

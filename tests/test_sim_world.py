@@ -576,7 +576,7 @@ def test_a_lying_stick_placed_at_rest_stays_put(world):
     """The blue stick lies on its side; placed at rest on the grasp desk at 12 random poses,
     the physics (simulator truth) keeps it within 15 mm after 3 s (rolling friction: without
     it a third of the placements rolled 6-163 mm)."""
-    from mmpa.perception.dataset import _footprint, desk_frame
+    from mmpa.experiments.perception_data import _footprint, desk_frame
 
     world.reset(pose2d=np.array([2.7, 0.85, np.pi / 2]), settle=0.1)
     T, _, _ = desk_frame(world)

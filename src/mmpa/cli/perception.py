@@ -54,7 +54,7 @@ def dataset_cmd(
 ) -> None:
     """Render a labelled data set in the twin."""
     try:
-        from mmpa.perception.dataset import DatasetConfig, render_dataset, save_dataset
+        from mmpa.experiments.perception_data import DatasetConfig, render_dataset, save_dataset
 
         cfg = DatasetConfig(
             n_images=n,
@@ -99,7 +99,12 @@ def train_cmd(
         from mmpa.perception import require_torch
 
         require_torch()
-        from mmpa.perception.dataset import Dataset, DatasetConfig, load_dataset, render_dataset
+        from mmpa.experiments.perception_data import (
+            Dataset,
+            DatasetConfig,
+            load_dataset,
+            render_dataset,
+        )
         from mmpa.perception.ssd import Detector
         from mmpa.perception.train import TrainConfig, choose_threshold, train
 
@@ -152,7 +157,7 @@ def prune_cmd(
         from mmpa.perception import require_torch
 
         require_torch()
-        from mmpa.perception.dataset import Dataset, load_dataset
+        from mmpa.experiments.perception_data import Dataset, load_dataset
         from mmpa.perception.prune import PruneConfig, macs, netadapt
         from mmpa.perception.ssd import Detector
 
@@ -206,7 +211,7 @@ def evaluate_cmd(
         from mmpa.perception import require_torch
 
         require_torch()
-        from mmpa.perception.dataset import DatasetConfig, load_dataset, render_dataset
+        from mmpa.experiments.perception_data import DatasetConfig, load_dataset, render_dataset
         from mmpa.perception.ssd import Detector
         from mmpa.perception.train import evaluate
 

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, Field
 
+from mmpa.experiments.perception_data import LOOK_HEIGHT, LOOK_TARGET, REGION
 from mmpa.experiments.runner import Context, Outcome, markdown_table
 from mmpa.perception import CLASSES, LIGHTING_CONDITIONS
 from mmpa.servo.grasp import GraspConfig
@@ -37,10 +38,6 @@ TABLE3 = {
     "blue_stick": {"high": 0.85, "normal": 0.90, "dark": 0.50},
     "paper_cup": {"high": 0.90, "normal": 0.90, "dark": 0.65},
 }
-#: the reachable part of the desk (desk-top frame, m) where trial objects are placed
-REGION = (-0.15, 0.15, -0.22, 0.0)
-LOOK_TARGET = (0.47, 0.0)  # arm_base x, y of the first view
-LOOK_HEIGHT = 0.45  # m above the desk top
 #: the wrist camera's stream profile in the tracking grasp (width, height): the detector's
 #: input size, so each tick renders and corrupts a quarter of the 640x480 pixels (the servo
 #: loop reaches 20 Hz in the twin, ``benchmarks/bench_perception.py``); detection success on
@@ -71,7 +68,7 @@ class Operator:
     (every 0.5-1.5 s), bouncing off the region's edges, until :meth:`release`."""
 
     def __init__(self, world: Any, name: str, speed: float, rng: np.random.Generator) -> None:
-        from mmpa.perception.dataset import desk_frame
+        from mmpa.experiments.perception_data import desk_frame
 
         self.world, self.name, self.speed, self.rng = world, name, speed, rng
         self.T_desk, _, _ = desk_frame(world)
@@ -185,8 +182,8 @@ def grasp_trial(
 ) -> dict[str, Any]:
     """One trial in the twin with the wrist camera streaming ``resolution`` (restored after);
     returns a result row (truth used only for evaluation)."""
+    from mmpa.experiments.perception_data import DESK_PARK, desk_frame, random_table_scene
     from mmpa.geometry import inv
-    from mmpa.perception.dataset import DESK_PARK, desk_frame, random_table_scene
     from mmpa.servo.grasp import look_configuration
 
     x, y, th = DESK_PARK
@@ -259,7 +256,7 @@ class _Probe:
     before that (``touched_before_close``: the object was knocked) and a failure class."""
 
     def __init__(self, world: Any, name: str) -> None:
-        from mmpa.perception.dataset import _footprint, desk_frame, desk_object_names
+        from mmpa.experiments.perception_data import _footprint, desk_frame, desk_object_names
 
         self.world, self.name = world, name
         m = world.model
@@ -359,7 +356,7 @@ def random_table_scene_keep(
     world: Any, rng: np.random.Generator, name: str, placed: dict[str, np.ndarray]
 ) -> None:
     """Place ``name`` in :data:`REGION` away from the already placed objects."""
-    from mmpa.perception.dataset import _footprint, desk_frame
+    from mmpa.experiments.perception_data import _footprint, desk_frame
 
     T_desk, _, _ = desk_frame(world)
     r, h = _footprint(world, name)
@@ -388,7 +385,7 @@ class OracleDetector:
 
     def detect(self, image: np.ndarray, score_threshold: float | None = None) -> list[Any]:
         """Truth boxes of the visible objects (``score_threshold`` ignored: every box scores 1)."""
-        from mmpa.perception.dataset import boxes_from_segmentation
+        from mmpa.experiments.perception_data import boxes_from_segmentation
         from mmpa.perception.ssd import Detection
 
         seg = self.world.camera.segmentation()

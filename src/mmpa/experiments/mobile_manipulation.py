@@ -209,8 +209,8 @@ def place_trial_objects(world: Any, rng: np.random.Generator, name: str, others:
     """The target in the reachable region (the ``grasp`` experiment's), ``others`` other
     detector classes and each distractor with p = 0.5 anywhere on the desk."""
     from mmpa.experiments.grasp import REGION
+    from mmpa.experiments.perception_data import _place_in_region, random_table_scene
     from mmpa.perception import CLASSES
-    from mmpa.perception.dataset import _place_in_region, random_table_scene
 
     pool = [c for c in CLASSES if c != name]
     objs = rng.choice(pool, min(others, len(pool)), replace=False).tolist()
@@ -222,6 +222,7 @@ def place_trial_objects(world: Any, rng: np.random.Generator, name: str, others:
 def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
     """One run (module doc); truth read only for the evaluation columns."""
     from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, held_in_the_physics, run_grasp
+    from mmpa.experiments.perception_data import DESK_PARK, desk_frame
     from mmpa.geometry import inv, se2_to_T
     from mmpa.localization.localizer import make_localizer
     from mmpa.navigation.mission import (
@@ -233,7 +234,6 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
     )
     from mmpa.navigation.planner import CostMap, plan_path
     from mmpa.perception import CLASSES
-    from mmpa.perception.dataset import DESK_PARK, desk_frame
     from mmpa.servo.grasp import look_configuration
     from mmpa.sim.lidar_noise import rough_pose
     from mmpa.sim.world import SimWorld
