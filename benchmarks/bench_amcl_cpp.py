@@ -39,7 +39,7 @@ MAX_BEAMS = 60
 def record(path: str) -> None:
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     from mmpa.localization.amcl import AMCL, AMCLConfig
-    from mmpa.navigation.mission import laser_pose2d, twin_map
+    from mmpa.sim.twin_maps import laser_pose2d, twin_map
     from mmpa.sim.world import SimWorld
 
     with SimWorld(site="1") as w:

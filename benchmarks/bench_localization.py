@@ -19,7 +19,7 @@ import numpy as np
 from mmpa.localization.amcl import AMCL, AMCLConfig
 from mmpa.localization.enhanced import EnhancedAMCL
 from mmpa.localization.maps import Box2D, rasterize
-from mmpa.navigation.mission import laser_pose2d, twin_map
+from mmpa.sim.twin_maps import laser_pose2d, twin_map
 from mmpa.sim.world import SimWorld
 
 

@@ -62,15 +62,10 @@ def one_run(
     ``view``: the sink is the Foxglove live view with no client instead of a bag."""
     from mmpa.bags import BagWriter, Recorder
     from mmpa.localization.localizer import make_localizer
-    from mmpa.navigation.mission import (
-        NavigateConfig,
-        laser_pose2d,
-        navigate,
-        twin_map,
-        twin_nav_map,
-    )
+    from mmpa.navigation.mission import NavigateConfig, navigate
     from mmpa.navigation.planner import CostMap
     from mmpa.sim.operator import rough_initial_pose
+    from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
     from mmpa.sim.world import SimWorld
 
     with SimWorld() as world:

@@ -327,8 +327,9 @@ def twin_recording(tmp_path_factory):
     """A short standing localization in the twin, recorded; live estimates for two lidars:
     the twin's own, and the same scans at ROS precision."""
     from mmpa.localization.localizer import make_localizer
-    from mmpa.navigation.mission import laser_pose2d, localize_standing, twin_map
+    from mmpa.navigation.mission import localize_standing
     from mmpa.sim.operator import rough_initial_pose
+    from mmpa.sim.twin_maps import laser_pose2d, twin_map
     from mmpa.sim.world import SimWorld
 
     d = tmp_path_factory.mktemp("twin")

@@ -20,7 +20,6 @@ import pytest
 
 from mmpa.geometry import T_to_vec6, inv, make_T
 from mmpa.localization.maps import Box2D, rasterize
-from mmpa.navigation.mission import twin_map
 from mmpa.robot.description import LidarDescription, default_robot
 from mmpa.sim.error_model import ErrorModel, ErrorModelConfig, LidarNoise
 from mmpa.sim.lidar_noise import (
@@ -33,6 +32,7 @@ from mmpa.sim.lidar_noise import (
 from mmpa.sim.noise import range_noise
 from mmpa.sim.operator import rough_initial_pose
 from mmpa.sim.sensors import SimLidar
+from mmpa.sim.twin_maps import twin_map
 from mmpa.sim.world import SimWorld
 
 REALISTIC = ErrorModelConfig().lidar

@@ -22,8 +22,8 @@ CAPABILITIES = [
     "servo",
     "tasks",
 ]
-#: modules that still take the twin (named in the closing note): navigate() takes a SimWorld
-KNOWN = {"mmpa.navigation.mission"}
+#: modules allowed to import the simulator (none)
+KNOWN: set[str] = set()
 
 
 def _sim_imports(path: Path) -> list[str]:

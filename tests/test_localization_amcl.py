@@ -18,8 +18,8 @@ from mmpa.localization.enhanced import (
 )
 from mmpa.localization.localizer import Localizer, make_localizer
 from mmpa.localization.reflectors import rigid_fit_2d
-from mmpa.navigation.mission import laser_pose2d, twin_map
 from mmpa.sim.error_model import ErrorModelConfig
+from mmpa.sim.twin_maps import laser_pose2d, twin_map
 from mmpa.sim.world import SimWorld
 
 

@@ -18,10 +18,10 @@ from mmpa.localization.enhanced import (
 )
 from mmpa.localization.reflectors import ReflectorDetections, detect_reflectors
 from mmpa.localization.trilateration import trilaterate_bias
-from mmpa.navigation.mission import laser_pose2d, twin_map
 from mmpa.navigation.mount_calibration import calibrate_lidar_mount
 from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.lidar_noise import rough_pose
+from mmpa.sim.twin_maps import laser_pose2d, twin_map
 from mmpa.sim.world import SimWorld
 
 AROUND = np.array([[3.0, 0.5], [-2.0, 2.5], [-1.5, -3.0], [2.5, -2.0], [0.5, 3.5], [-3.5, 0.0]])

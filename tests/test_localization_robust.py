@@ -20,9 +20,9 @@ from mmpa.localization.hector import HectorMatcher
 from mmpa.localization.localizer import METHODS, make_localizer
 from mmpa.localization.maps import Box2D, rasterize
 from mmpa.localization.trilateration import trilaterate
-from mmpa.navigation.mission import laser_pose2d, twin_map
 from mmpa.robot.interfaces import LaserScan
 from mmpa.sim.error_model import ErrorModelConfig
+from mmpa.sim.twin_maps import laser_pose2d, twin_map
 from mmpa.sim.world import SimWorld
 
 LASER = np.array([0.2, 0.0, 0.0])

@@ -11,15 +11,10 @@ from mmpa.errors import UnreachableError
 from mmpa.localization.localizer import make_localizer
 from mmpa.localization.maps import Box2D, rasterize
 from mmpa.navigation.follower import FollowerConfig, PathFollower
-from mmpa.navigation.mission import (
-    NavigateConfig,
-    laser_pose2d,
-    navigate,
-    twin_map,
-    twin_nav_map,
-)
+from mmpa.navigation.mission import NavigateConfig, navigate
 from mmpa.navigation.planner import CostMap, PlannerConfig, plan_path
 from mmpa.sim.error_model import ErrorModelConfig
+from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
 from mmpa.sim.world import SimWorld
 
 

@@ -89,7 +89,7 @@ def test_desk_search_finds_the_legs_only_where_the_map_puts_them():
     from mmpa.experiments.mobile_manipulation import desk_front_legs, desk_in_scan
     from mmpa.experiments.perception_data import DESK_PARK
     from mmpa.geometry import se2_to_T
-    from mmpa.navigation.mission import laser_pose2d
+    from mmpa.sim.twin_maps import laser_pose2d
     from mmpa.sim.world import SimWorld
 
     with SimWorld(site="0") as w:
@@ -172,7 +172,7 @@ def test_turn_to_heading_aligns_the_true_base_on_the_estimate():
     from mmpa.experiments.perception_data import DESK_PARK
     from mmpa.geometry import wrap_angle
     from mmpa.localization.localizer import make_localizer
-    from mmpa.navigation.mission import laser_pose2d, twin_map
+    from mmpa.sim.twin_maps import laser_pose2d, twin_map
     from mmpa.sim.world import SimWorld
 
     park = np.array(DESK_PARK)

@@ -150,3 +150,53 @@ def test_grasp_over_protocols_only() -> None:
 @pytest.mark.parametrize("cls", [OnlyArm, OnlyCamera, OnlyGripper, OnlyBase])
 def test_wrappers_expose_nothing_else(cls) -> None:
     assert not hasattr(cls(None), "__dict__")  # __slots__: no world can hide in them
+
+
+class OnlyMobileRobot:
+    """A mobile robot with nothing but what navigation uses: base, odometry, lidar, a clock."""
+
+    __slots__ = ("_w",)
+
+    def __init__(self, world) -> None:
+        self._w = world
+
+    @property
+    def base(self):
+        return OnlyBase(self._w.base)
+
+    @property
+    def odometry(self):
+        return self._w.odometry
+
+    @property
+    def lidar(self):
+        return self._w.lidar
+
+    @property
+    def time(self) -> float:
+        return self._w.time
+
+    def step(self, duration: float) -> None:
+        self._w.step(duration)
+
+
+def test_navigation_over_protocols_only() -> None:
+    """navigate() drives the twin through an object without truth or world: it reaches the
+    site on the estimate; the truth, given only for the evaluation, scores it."""
+    from mmpa.localization.localizer import make_localizer
+    from mmpa.navigation.mission import NavigateConfig, navigate
+    from mmpa.sim.operator import rough_initial_pose
+    from mmpa.sim.twin_maps import laser_pose2d, twin_map
+
+    with SimWorld(site="0", errors=ErrorModelConfig(profile="reference")) as w:
+        grid = twin_map(w)
+        loc = make_localizer("enhanced", grid, laser_pose2d(w), np.random.default_rng(0))
+        loc.initialize(rough_initial_pose(w))
+        goal = w.scene.site("1").pose2d
+        robot = OnlyMobileRobot(w)
+        res = navigate(robot, loc, grid, goal, NavigateConfig(timeout=90.0))
+        assert np.all(np.isnan(res.final_truth))  # no truth in the robot object
+        truth = w.truth.base_pose2d()
+    assert res.reached
+    assert np.hypot(*(truth[:2] - goal[:2])) < 0.03  # parked at the site (truth, from outside)
+    assert np.hypot(*(res.final_estimate[:2] - truth[:2])) < 0.01

@@ -46,15 +46,10 @@ def navigate_cmd(
     import numpy as np
 
     from mmpa.localization.localizer import make_localizer
-    from mmpa.navigation.mission import (
-        NavigateConfig,
-        laser_pose2d,
-        navigate,
-        twin_map,
-        twin_nav_map,
-    )
+    from mmpa.navigation.mission import NavigateConfig, navigate
     from mmpa.navigation.planner import CostMap
     from mmpa.sim.operator import rough_initial_pose
+    from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
     from mmpa.sim.world import SimWorld
 
     try:
@@ -111,7 +106,7 @@ def map_export(
     """Write the twin's occupancy map (warped as mapped, per the error model) with the surveyed
     reflector landmarks (map_server YAML)."""
     from mmpa.localization.maps import save_map
-    from mmpa.navigation.mission import twin_map
+    from mmpa.sim.twin_maps import twin_map
     from mmpa.sim.world import SimWorld
 
     out_dir(out.parent)

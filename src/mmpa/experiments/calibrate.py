@@ -333,11 +333,11 @@ def run_lidar_mount(
     ``robot.yaml`` with the calibrated ``lidar.T_base_link_laser_vec`` (the nominal height,
     roll, pitch and yaw kept: a turn on the spot observes the translation only)."""
     from mmpa.geometry import T_to_se2
-    from mmpa.navigation.mission import laser_pose2d, twin_map
     from mmpa.navigation.mount_calibration import calibrate_lidar_mount
     from mmpa.robot.description import default_robot
     from mmpa.robot.robot_file import save_robot
     from mmpa.sim.operator import rough_initial_pose
+    from mmpa.sim.twin_maps import laser_pose2d, twin_map
     from mmpa.sim.world import SimWorld
 
     t0 = time.perf_counter()

@@ -30,17 +30,12 @@ from mmpa.errors import MMPAError
 from mmpa.experiments import plots
 from mmpa.geometry import Array, T_to_vec6, apply, inv, se2_to_T, wrap_angle
 from mmpa.navigation import GoToPoseConfig, go_to_pose_command
-from mmpa.navigation.mission import (
-    NavigateConfig,
-    laser_pose2d,
-    navigate,
-    twin_map,
-    twin_nav_map,
-)
+from mmpa.navigation.mission import NavigateConfig, navigate
 from mmpa.navigation.planner import CostMap
 from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.operator import rough_initial_pose
 from mmpa.sim.scene import load_scene
+from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
 from mmpa.sim.world import SimWorld
 
 __all__ = ["DemoConfig", "run_demo", "snapshot"]

@@ -32,18 +32,13 @@ from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.geometry import wrap_angle
 from mmpa.localization.amcl import AMCLConfig
 from mmpa.localization.localizer import METHODS, make_localizer
-from mmpa.navigation.mission import (
-    NavigateConfig,
-    laser_pose2d,
-    navigate,
-    twin_map,
-    twin_nav_map,
-)
+from mmpa.navigation.mission import NavigateConfig, navigate
 from mmpa.navigation.mount_calibration import MountCalibrationConfig, calibrate_lidar_mount
 from mmpa.navigation.planner import CostMap
 from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.lidar_noise import rough_pose
 from mmpa.sim.operator import rough_initial_pose
+from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
 from mmpa.sim.world import SimWorld
 
 PAPER = "paper 001 (Zhou et al. 2020) §4.3.1, Table 2 and Fig. 9"

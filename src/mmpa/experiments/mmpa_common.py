@@ -56,7 +56,7 @@ from mmpa.missions.mmpa import (
     replay_tmma,
     teach,
 )
-from mmpa.navigation.mission import laser_pose2d, localize_standing, twin_map
+from mmpa.navigation.mission import localize_standing
 from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.operator import (
     Demonstration,
@@ -67,6 +67,7 @@ from mmpa.sim.operator import (
     true_tcp_in_map,
 )
 from mmpa.sim.scene import SceneConfig, load_scene
+from mmpa.sim.twin_maps import laser_pose2d, twin_map
 from mmpa.sim.world import SimWorld
 from mmpa.tasks import Task, read_bundle, write_bundle
 from mmpa.tasks.bundle import BUNDLE_FILES
@@ -347,8 +348,9 @@ class TwinSite:
         )
 
     def _navigation(self):
-        from mmpa.navigation.mission import NavigateConfig, twin_nav_map
+        from mmpa.navigation.mission import NavigateConfig
         from mmpa.navigation.planner import CostMap
+        from mmpa.sim.twin_maps import twin_nav_map
 
         if not hasattr(self, "_nav"):
             w = self.world

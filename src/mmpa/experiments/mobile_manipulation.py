@@ -170,7 +170,7 @@ def turn_on_the_spot(
 def search_desk(world: Any, localizer: Any, cfg: Config) -> tuple[bool, float]:
     """Turn on the spot (toward the desk side first, on the estimate) until the desk's front
     legs are in the scan (:func:`desk_in_scan`); returns ``(found, seconds)``."""
-    from mmpa.navigation.mission import laser_pose2d
+    from mmpa.sim.twin_maps import laser_pose2d
 
     legs = desk_front_legs(world)
     T_base_laser = se2_to_T(*laser_pose2d(world))
@@ -225,17 +225,12 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
     from mmpa.experiments.perception_data import DESK_PARK, desk_frame
     from mmpa.geometry import inv, se2_to_T
     from mmpa.localization.localizer import make_localizer
-    from mmpa.navigation.mission import (
-        laser_pose2d,
-        localize_standing,
-        navigate,
-        twin_map,
-        twin_nav_map,
-    )
+    from mmpa.navigation.mission import localize_standing, navigate
     from mmpa.navigation.planner import CostMap, plan_path
     from mmpa.perception import CLASSES
     from mmpa.servo.grasp import look_configuration
     from mmpa.sim.lidar_noise import rough_pose
+    from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
     from mmpa.sim.world import SimWorld
 
     rng = np.random.default_rng([cfg.seed, k, CLASSES.index(name)])

@@ -41,9 +41,9 @@ from mmpa.geometry import wrap_angle
 from mmpa.localization.localizer import METHODS, _observer, make_localizer
 from mmpa.localization.trilateration import trilaterate
 from mmpa.navigation.follower import FollowerConfig, PathFollower
-from mmpa.navigation.mission import laser_pose2d, twin_map, twin_nav_map
 from mmpa.navigation.planner import CostMap, plan_path
 from mmpa.sim.operator import rough_initial_pose
+from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
 from mmpa.sim.world import SimWorld
 
 PAPER = "paper 001 (Zhou et al. 2020) §4.3.1, Fig. 10 (reflectors occluded by people)"

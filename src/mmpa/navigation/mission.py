@@ -1,11 +1,9 @@
-"""Drive the twin (or any robot with the same devices) to a goal on the localization estimate.
+"""Drive a mobile robot to a goal on the localization estimate, over the robot protocols.
 
-``twin_map`` builds the occupancy grid the paper builds with Gmapping: here from the scene
-geometry the lidar can see (every static and movable geom of the MuJoCo model that cuts the
-lidar's scan plane), rasterized through the mapping distortion of the error model
-(``world.map_warp``: a smooth displacement field, DESIGN.md "Error model v2"), with the
-SURVEYED reflector positions (``world.map_reflectors``, off the true ones per the error model)
-stored as landmarks. ``twin_nav_map`` (the planner's obstacles) stays undistorted.
+The robot is any object with a ``base`` (:class:`~mmpa.robot.interfaces.Base`), ``odometry``
+and ``lidar`` sources, a clock ``time`` and ``step(duration)`` (the twin advances its physics;
+a real robot waits): :class:`MobileRobot`. The twin's maps come from
+:mod:`mmpa.sim.twin_maps`.
 
 ``localize_standing`` runs a localizer on scans while the base stands still: how a parked
 robot (or one just told its rough pose) gets its pose estimate.
@@ -20,110 +18,51 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
-import mujoco
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.geometry import Array, T_to_se2, wrap_angle
+from mmpa.geometry import Array, wrap_angle
 from mmpa.localization.localizer import Localizer
-from mmpa.localization.maps import Box2D, OccupancyGrid, rasterize
+from mmpa.localization.maps import OccupancyGrid
 from mmpa.navigation.follower import FollowerConfig, PathFollower
 from mmpa.navigation.planner import CostMap, PlannerConfig, plan_path
+from mmpa.robot.interfaces import Base, Lidar
 
-if TYPE_CHECKING:  # pragma: no cover
-    from mmpa.sim.world import SimWorld
-
-__all__ = [
-    "NavigateConfig",
-    "NavigationResult",
-    "laser_pose2d",
-    "localize_standing",
-    "navigate",
-    "twin_map",
-    "twin_nav_map",
-]
-
-_GEOM_BOX = int(mujoco.mjtGeom.mjGEOM_BOX)
-_GEOM_CYL = int(mujoco.mjtGeom.mjGEOM_CYLINDER)
+__all__ = ["MobileRobot", "NavigateConfig", "NavigationResult", "localize_standing", "navigate"]
 
 
-def laser_pose2d(world: SimWorld) -> Array:
-    """The NOMINAL lidar mount ``[x, y, yaw]`` in ``base_link``."""
-    return T_to_se2(world.nominal.lidar.T_base_link_laser)
+class MobileRobot(Protocol):
+    """What navigation drives: a base, odometry and lidar sources and a clock (``step``
+    advances it by ``duration`` s: the twin's physics, a real robot's wait)."""
+
+    @property
+    def base(self) -> Base: ...
+
+    @property
+    def odometry(self) -> Any: ...  # .odometry() -> Odometry
+
+    @property
+    def lidar(self) -> Lidar: ...
+
+    @property
+    def time(self) -> float: ...
+
+    def step(self, duration: float) -> None: ...
 
 
-def twin_map(
-    world: SimWorld,
-    resolution: float = 0.05,
-    margin: float = 0.5,
-    z_band: tuple[float, float] | None = None,
-    warped: bool = True,
-) -> OccupancyGrid:
-    """Occupancy grid of everything the lidar plane cuts (or, with ``z_band`` = (low, high),
-    everything overlapping that height band), plus the surveyed reflector landmarks.
-
-    ``warped``: draw it through the world's mapping distortion ``world.map_warp`` (a world
-    point ``q`` lies at ``q + map_warp(q)`` in the map; zero in the ``reference`` profile), as
-    a map made by SLAM at mapping time is; ``False``: the true geometry."""
-    m, d = world.model, world.data
-    z = float(world.nominal.lidar.T_base_link_laser[2, 3])
-    lo, hi = z_band if z_band is not None else (z, z)
-    boxes: list[Box2D] = []
-    for g in range(m.ngeom):
-        if m.geom_group[g] > 2 or m.geom_type[g] not in (_GEOM_BOX, _GEOM_CYL):
-            continue
-        R = d.geom_xmat[g].reshape(3, 3)
-        if abs(R[2, 2]) < 0.99:  # tilted geoms (none in the default world) are skipped
-            continue
-        size = m.geom_size[g]
-        pos = d.geom_xpos[g]
-        half_h = size[2] if m.geom_type[g] == _GEOM_BOX else size[1]
-        if pos[2] + half_h < lo or pos[2] - half_h > hi:
-            continue
-        if m.geom_type[g] == _GEOM_CYL:
-            boxes.append(Box2D((float(pos[0]), float(pos[1])), radius=float(size[0])))
-        else:
-            yaw = float(np.arctan2(R[1, 0], R[0, 0]))
-            boxes.append(
-                Box2D((float(pos[0]), float(pos[1])), (2 * float(size[0]), 2 * float(size[1])), yaw)
-            )
-    sc = world.scene
-    cx, cy = sc.floor_center
-    sx, sy = sc.floor_size
-    bounds = (
-        cx - sx / 2 - margin,
-        cy - sy / 2 - margin,
-        cx + sx / 2 + margin,
-        cy + sy / 2 + margin,
-    )
-    warp = getattr(world, "map_warp", None) if warped else None
-    if warp is not None and getattr(warp, "sigma", 1.0) == 0:
-        warp = None
-    return rasterize(
-        boxes,
-        bounds,
-        resolution,
-        world.map_reflectors.copy(),
-        float(sc.reflectors.radius),
-        warp=warp,
-    )
-
-
-def twin_nav_map(world: SimWorld, resolution: float = 0.05) -> OccupancyGrid:
-    """Obstacle map for planning: everything the base body could hit (between its ground
-    clearance and its top), including low things the lidar plane misses (e.g. the fiducial
-    artifact); the speed bump (lower than the clearance) stays traversable. Nav2 would get
-    these from other sensors or a keep-out layer."""
-    b = world.nominal.base
-    return twin_map(
-        world, resolution, z_band=(b.ground_clearance + 0.005, b.body_size[2]), warped=False
-    )
+def _truth_source(robot: Any, truth: Callable[[], Array] | None) -> Callable[[], Array] | None:
+    """The evaluation's ground truth: ``truth``, else the twin's (an object with
+    ``truth.base_pose2d``), else none. Never used to steer."""
+    if truth is not None:
+        return truth
+    gt = getattr(robot, "truth", None)
+    return None if gt is None else gt.base_pose2d
 
 
 def localize_standing(
-    world: SimWorld, localizer: Localizer, scans: int = 5, scan_rate: float = 10.0
+    world: MobileRobot, localizer: Localizer, scans: int = 5, scan_rate: float = 10.0
 ) -> Array:
     """Feed ``scans`` scans taken ``1 / scan_rate`` s apart to an initialized ``localizer``
     while the base stands still (each update forced: Nav2 AMCL would wait for motion), and
@@ -179,20 +118,28 @@ class NavigationResult:
 
 
 def navigate(
-    world: SimWorld,
+    world: MobileRobot,
     localizer: Localizer,
     grid: OccupancyGrid,
     goal: Array,
     cfg: NavigateConfig | None = None,
-    on_tick: Callable[[SimWorld, float], None] | None = None,
+    on_tick: Callable[[Any, float], None] | None = None,
     progress: Callable[[str, float], None] | None = None,
     costmap: CostMap | None = None,
+    truth: Callable[[], Array] | None = None,
 ) -> NavigationResult:
     """Drive to ``goal`` = ``[x, y, theta]`` on the localization estimate (see module doc).
 
+    The loop: scans at ``scan_rate`` into the localizer, a plan from the estimate, pure
+    pursuit, final approach with position and heading tolerances, settle and re-check (up to
+    ``max_corrections`` times); it steers only on ``localizer.pose_at(odometry)``.
     ``on_tick(world, t)`` runs every control tick (e.g. to move occluders); the localizer must
-    already be initialized (rough initial pose).
+    already be initialized (rough initial pose). ``truth()`` (default: the twin's ground truth
+    when ``world`` has one) is read only for the evaluation trace and ``final_truth`` (NaN
+    without a truth).
     """
+    truth_pose = _truth_source(world, truth)
+    no_truth = np.full(3, np.nan)
     cfg = cfg or NavigateConfig()
     goal = np.asarray(goal, float).reshape(3)
     dt = 1.0 / cfg.control_rate
@@ -207,7 +154,7 @@ def navigate(
         localizer.update(odom, scan, force=force)
         est = localizer.pose_at(odom)
         trace["t"].append(world.time - t0)
-        trace["truth"].append(world.truth.base_pose2d())  # evaluation only
+        trace["truth"].append(truth_pose() if truth_pose else no_truth)  # evaluation only
         trace["estimate"].append(est)
         obs = getattr(localizer, "observer", None)
         trace["reflectors"].append(len(obs.last_detections) if obs is not None else -1)
@@ -269,7 +216,7 @@ def navigate(
     return NavigationResult(
         reached=reached,
         goal=goal,
-        final_truth=world.truth.base_pose2d(),
+        final_truth=truth_pose() if truth_pose else no_truth,
         final_estimate=final_est,
         sim_time=world.time - t0,
         path=path,
