@@ -13,7 +13,10 @@ runner = CliRunner()
 
 
 def test_navigate_prints_parking_error(tmp_path) -> None:
-    res = runner.invoke(app, ["navigate", "--to", "2", "--out", str(tmp_path)])
+    bag = tmp_path / "drive.mcap"
+    res = runner.invoke(
+        app, ["navigate", "--to", "2", "--out", str(tmp_path), "--record", str(bag)]
+    )
     assert res.exit_code == 0, res.output
     assert "parking_error_xy_mm" in res.output
     s = json.loads((tmp_path / "summary.json").read_text())
@@ -21,6 +24,14 @@ def test_navigate_prints_parking_error(tmp_path) -> None:
     # 5.6 mm parking and 9.7 mm localization error measured (reference: < 6 mm localization)
     assert s["profile"] == "realistic"
     assert s["reached"] and s["parking_error_xy_mm"] < 10 and s["localization_error_xy_mm"] < 20
+    # --record: the drive as a ROS 2 bag (the run itself unchanged: the recorder only observes)
+    from mmpa.backends.bag import bag_topics
+
+    topics = bag_topics(bag)
+    assert topics["/scan"][0] == "sensor_msgs/msg/LaserScan" and topics["/scan"][1] > 50
+    assert topics["/amcl_pose"][1] == topics["/scan"][1]
+    assert topics["/map"][1] == 1 and topics["/odom"][1] > 0
+    assert s["bag_messages"] == sum(n for _, n in topics.values())
 
 
 def test_navigate_unknown_profile_fails_cleanly() -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Annotated
 
@@ -39,6 +40,10 @@ def navigate_cmd(
         float, typer.Option(help="Simulated seconds.", callback=in_range(0.0, 86400.0))
     ] = 120.0,
     profile: ProfileOpt = None,
+    record: Annotated[
+        Path | None,
+        typer.Option(help="Record the drive to this ROS 2 bag (FILE.mcap, or a rosbag2 folder)."),
+    ] = None,
 ) -> None:
     """Drive the twin from a site to ``--to`` on the localization estimate (started from the
     operator's rough pose); print the parking error (truth vs goal) and the localization error
@@ -52,16 +57,26 @@ def navigate_cmd(
     from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
     from mmpa.sim.world import SimWorld
 
+    bag = None
     try:
         errors = _errors(seed, profile)
-        with SimWorld(errors=errors, site=start) as world:
+        with SimWorld(errors=errors, site=start) as world, ExitStack() as stack:
             goal = world.scene.site(to).pose2d
             grid = twin_map(world)
             loc = make_localizer(method, grid, laser_pose2d(world), np.random.default_rng(seed))
+            robot = world
+            if record is not None:  # the same run, observed (mmpa.bags.Recorder)
+                from mmpa.bags import BagWriter, Recorder
+
+                bag = stack.enter_context(BagWriter(record, overwrite=True))
+                recorder = Recorder(bag, world)
+                robot = recorder.world()
+                recorder.write_map(grid)
+                loc = recorder.localizer(loc)
             loc.initialize(rough_initial_pose(world))  # the operator's rough pose
             with console.status(f"navigating site {start} -> site {to} ({method})"):
                 cm = CostMap(twin_nav_map(world))
-                res = navigate(world, loc, grid, goal, NavigateConfig(timeout=timeout), costmap=cm)
+                res = navigate(robot, loc, grid, goal, NavigateConfig(timeout=timeout), costmap=cm)
     except MMPAError as e:
         fail(e)
     e = res.localization_error
@@ -77,6 +92,9 @@ def navigate_cmd(
         "localization_error_xy_mm": round(1000 * float(np.hypot(e[0], e[1])), 2),
         "localization_error_yaw_deg": round(float(np.rad2deg(abs(e[2]))), 3),
     }
+    if bag is not None:
+        summary["bag"] = str(record)
+        summary["bag_messages"] = sum(bag.counts.values())
     if out is not None:
         out_dir(out)
         (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
