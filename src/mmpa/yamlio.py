@@ -9,6 +9,8 @@ expanded, and any text longer than ``max_bytes``.
 
 from __future__ import annotations
 
+import math
+from numbers import Real
 from pathlib import Path
 from typing import Any
 
@@ -50,10 +52,11 @@ def load_yaml_text(text: str, what: str = "YAML text", max_bytes: int = MAX_YAML
         raise ConfigError(f"{what}: not valid YAML: {e}") from e
 
 
-def load_yaml(path: str | Path, max_bytes: int = MAX_YAML_BYTES) -> Any:
+def load_yaml(path: str | Path, max_bytes: int = MAX_YAML_BYTES, what: str = "") -> Any:
     """Read and parse the YAML file ``path`` (see :func:`load_yaml_text`).
 
-    The size is checked on disk before anything is read; errors name the file.
+    The size is checked on disk before anything is read; errors name the file (and ``what``
+    it is, e.g. "scene file": "cannot read scene file PATH").
     """
     p = Path(path)
     try:
@@ -62,9 +65,21 @@ def load_yaml(path: str | Path, max_bytes: int = MAX_YAML_BYTES) -> Any:
             raise ConfigError(f"{p}: {size} bytes of YAML, more than the {max_bytes} accepted")
         raw = p.read_bytes()
     except OSError as e:
-        raise ConfigError(f"cannot read {p}: {e.strerror or e}") from e
+        kind = f"{what} " if what else ""
+        raise ConfigError(f"cannot read {kind}{p}: {e.strerror or e}") from e
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
         raise ConfigError(f"{p}: not UTF-8 text ({e.reason} at byte {e.start})") from e
     return load_yaml_text(text, str(p), max_bytes)
+
+
+def finite_number(value: Any, where: str) -> float:
+    """``value`` read from YAML as a finite float; a bool, a string, NaN or inf is a
+    :class:`~mmpa.errors.ConfigError` naming ``where`` (a file and field)."""
+    if isinstance(value, bool) or not isinstance(value, Real):
+        raise ConfigError(f"{where}: must be a number, got {value!r}")
+    f = float(value)
+    if not math.isfinite(f):
+        raise ConfigError(f"{where}: must be finite, got {value!r}")
+    return f

@@ -15,8 +15,8 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from mmpa.bags.messages import stamp_ns, typestore
-from mmpa.bags.writer import LATCHED_TOPICS
+from mmpa.bags.messages import typestore
+from mmpa.bags.writer import LATCHED_TOPICS, log_time_ns
 from mmpa.errors import InvalidInputError, MMPAError
 
 __all__ = ["FoxgloveView", "Tee"]
@@ -95,13 +95,7 @@ class FoxgloveView:
         latch = topic in LATCHED_TOPICS if latched is None else latched
         if not ch.has_sinks() and not latch:
             return  # nobody listens: skip the serialization
-        if stamp is None:
-            header = getattr(msg, "header", None)
-            if header is None:
-                raise InvalidInputError(f"a {msgtype} on {topic} has no header: give its stamp")
-            ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-        else:
-            ns = stamp_ns(stamp)
+        ns = log_time_ns(topic, msg, stamp)
         data = bytes(typestore().serialize_cdr(msg, msgtype))
         if latch:
             self._latched[topic] = (data, ns)

@@ -23,7 +23,7 @@ from typing import Any
 from mmpa.bags.messages import stamp_ns, typestore
 from mmpa.errors import InvalidInputError, MMPAError
 
-__all__ = ["LATCHED_TOPICS", "BagWriter"]
+__all__ = ["LATCHED_TOPICS", "BagWriter", "log_time_ns"]
 
 #: topics written with transient_local durability unless told otherwise
 LATCHED_TOPICS = frozenset({"/tf_static", "/map", "/reflectors"})
@@ -51,6 +51,17 @@ def _latched_qos() -> Any:
         liveliness_lease_duration=zero,
         avoid_ros_namespace_conventions=False,
     )
+
+
+def log_time_ns(topic: str, msg: Any, stamp: float | None) -> int:
+    """Log time (ns) of ``msg`` on ``topic``: ``stamp`` s, else the message's header stamp
+    (a message without a header needs ``stamp``)."""
+    if stamp is not None:
+        return stamp_ns(stamp)
+    header = getattr(msg, "header", None)
+    if header is None:
+        raise InvalidInputError(f"a {msg.__msgtype__} on {topic} has no header: give its stamp")
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
 class BagWriter:
@@ -95,13 +106,7 @@ class BagWriter:
         if self._closed:
             raise MMPAError(f"bag {self.path} is closed")
         msgtype = msg.__msgtype__
-        if stamp is None:
-            header = getattr(msg, "header", None)
-            if header is None:
-                raise InvalidInputError(f"a {msgtype} on {topic} has no header: give its stamp")
-            ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-        else:
-            ns = stamp_ns(stamp)
+        ns = log_time_ns(topic, msg, stamp)
         conn = self._conns.get(topic)
         if conn is None:
             latch = topic in LATCHED_TOPICS if latched is None else latched

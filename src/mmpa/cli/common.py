@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, NoReturn
 
 import typer
 from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from mmpa.errors import MMPAError
 
@@ -73,3 +75,34 @@ def out_dir(path: Path) -> Path:
                 fail(MMPAError(f"cannot create the output folder {path}: {parent} is a file"))
         fail(MMPAError(f"cannot create the output folder {path}: {e.strerror or e}"))
     return path
+
+
+@contextmanager
+def progress_bar(
+    first: str, max_chars: int | None = None
+) -> Iterator[Callable[[str, float], None]]:
+    """A transient progress bar; yields the ``progress(stage, fraction)`` callback the
+    runners take (``fraction`` clipped to [0, 1]; ``stage`` cut to ``max_chars``)."""
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task(first, total=1.0)
+
+        def progress(stage: str, frac: float) -> None:
+            text = stage if max_chars is None else stage[:max_chars]
+            bar.update(task, description=text, completed=max(0.0, min(frac, 1.0)))
+
+        yield progress
+
+
+WorkersOpt = Annotated[
+    int, typer.Option(help="Trials in this many processes (or Ray CPUs).", min=1)
+]
+ExecutorOpt = Annotated[str, typer.Option(help="Where trials run: local (processes) or ray.")]
+RayAddressOpt = Annotated[
+    str | None, typer.Option(help="Ray cluster to connect to (--executor ray).")
+]

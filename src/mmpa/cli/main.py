@@ -11,10 +11,19 @@ os.environ.setdefault("MUJOCO_GL", "osmesa")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
 import typer
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from mmpa.cli.common import DbOpt, ProfileOpt, console, fail, profile_overrides
+from mmpa.cli.common import (
+    DbOpt,
+    ExecutorOpt,
+    ProfileOpt,
+    RayAddressOpt,
+    WorkersOpt,
+    console,
+    fail,
+    profile_overrides,
+    progress_bar,
+)
 from mmpa.cli.perception import perception_app
 from mmpa.cli.tasks import tasks_app
 from mmpa.errors import MMPAError
@@ -126,18 +135,7 @@ def demo(
 
     try:
         cfg = _demo_config(config, seed, set_, profile)
-        with Progress(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            TimeElapsedColumn(),
-            console=console,
-            transient=True,
-        ) as bar:
-            task = bar.add_task("building world", total=1.0)
-
-            def progress(stage: str, frac: float) -> None:
-                bar.update(task, description=stage, completed=max(0.0, min(frac, 1.0)))
-
+        with progress_bar("building world") as progress:
             summary = run_demo(cfg, out, progress, record=record, view=view)
     except MMPAError as e:
         fail(e)
@@ -178,15 +176,9 @@ def experiment(
     profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
-    workers: Annotated[
-        int, typer.Option(help="Trials in this many processes (or Ray CPUs).", min=1)
-    ] = 1,
-    executor: Annotated[
-        str, typer.Option(help="Where trials run: local (processes) or ray.")
-    ] = "local",
-    ray_address: Annotated[
-        str | None, typer.Option(help="Ray cluster to connect to (--executor ray).")
-    ] = None,
+    workers: WorkersOpt = 1,
+    executor: ExecutorOpt = "local",
+    ray_address: RayAddressOpt = None,
     resume: Annotated[
         bool, typer.Option("--resume", help="Keep the finished trials in --out; run the rest.")
     ] = False,
@@ -204,18 +196,7 @@ def experiment(
         return
     out = out or Path("runs") / name
     try:
-        with Progress(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            TimeElapsedColumn(),
-            console=console,
-            transient=True,
-        ) as bar:
-            task = bar.add_task(name, total=1.0)
-
-            def progress(stage: str, frac: float) -> None:
-                bar.update(task, description=stage, completed=max(0.0, min(frac, 1.0)))
-
+        with progress_bar(name) as progress:
             outcome = run_experiment(
                 name,
                 out,

@@ -7,9 +7,16 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-from mmpa.cli.common import console, fail, out_dir
+from mmpa.cli.common import (
+    ExecutorOpt,
+    RayAddressOpt,
+    WorkersOpt,
+    console,
+    fail,
+    out_dir,
+    progress_bar,
+)
 from mmpa.errors import MMPAError
 
 __all__ = ["register", "sweep_cmd"]
@@ -20,15 +27,9 @@ def sweep_cmd(
     out: Annotated[
         Path | None, typer.Option(help="Sweep folder (default runs/sweep-FILE_STEM).")
     ] = None,
-    workers: Annotated[
-        int, typer.Option(help="Trials of a point in this many processes (or Ray CPUs).", min=1)
-    ] = 1,
-    executor: Annotated[
-        str, typer.Option(help="Where trials run: local (processes) or ray.")
-    ] = "local",
-    ray_address: Annotated[
-        str | None, typer.Option(help="Ray cluster to connect to (--executor ray).")
-    ] = None,
+    workers: WorkersOpt = 1,
+    executor: ExecutorOpt = "local",
+    ray_address: RayAddressOpt = None,
     resume: Annotated[
         bool,
         typer.Option(
@@ -44,18 +45,7 @@ def sweep_cmd(
         spec = load_sweep(file)
         check_run_options(workers, executor)
         out_dir(out)
-        with Progress(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            TimeElapsedColumn(),
-            console=console,
-            transient=True,
-        ) as bar:
-            task = bar.add_task("sweep", total=1.0)
-
-            def progress(stage: str, frac: float) -> None:
-                bar.update(task, description=stage[:100], completed=max(0.0, min(frac, 1.0)))
-
+        with progress_bar("sweep", max_chars=100) as progress:
             result = run_sweep(
                 spec,
                 out,

@@ -40,7 +40,7 @@ from mmpa.localization.reflector_map import (
     load_reflector_map,
     parse_reflector_entries,
 )
-from mmpa.yamlio import load_yaml
+from mmpa.yamlio import finite_number, load_yaml
 
 __all__ = [
     "QUANTUM_MAX",
@@ -437,13 +437,7 @@ def occupancy_from_image(
 
 
 def _num(meta: dict, key: str, where: Path) -> float:
-    v = meta[key]
-    if isinstance(v, bool) or not isinstance(v, Real):
-        raise ConfigError(f"{where}: {key}: must be a number, got {v!r}")
-    f = float(v)
-    if not math.isfinite(f):
-        raise ConfigError(f"{where}: {key}: must be finite, got {v!r}")
-    return f
+    return finite_number(meta[key], f"{where}: {key}")
 
 
 def _map_reflectors(value: object, yaml_path: Path) -> tuple[Array, float]:

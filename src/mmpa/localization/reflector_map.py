@@ -15,9 +15,8 @@ File format (YAML, read through :func:`mmpa.yamlio.load_yaml`)::
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from numbers import Integral, Real
+from numbers import Integral
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +25,7 @@ import yaml
 from scipy.spatial import cKDTree
 
 from mmpa.errors import ConfigError, InvalidInputError
-from mmpa.yamlio import load_yaml
+from mmpa.yamlio import finite_number, load_yaml
 
 __all__ = [
     "MIN_SEPARATION",
@@ -108,15 +107,6 @@ class ReflectorMap:
         ]
 
 
-def _number(v: Any, where: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, Real):
-        raise ConfigError(f"{where}: must be a number, got {v!r}")
-    f = float(v)
-    if not math.isfinite(f):
-        raise ConfigError(f"{where}: must be finite, got {v!r}")
-    return f
-
-
 def parse_reflector_entries(entries: Any, what: str, field: str = "reflectors") -> ReflectorMap:
     """A :class:`ReflectorMap` from a parsed YAML list of ``{id, x, y, radius}`` mappings.
 
@@ -149,8 +139,8 @@ def parse_reflector_entries(entries: Any, what: str, field: str = "reflectors") 
         if isinstance(k, bool) or not isinstance(k, Integral):
             raise ConfigError(f"{where}.id: must be an integer, got {k!r}")
         ids.append(int(k))
-        xy.append((_number(e["x"], f"{where}.x"), _number(e["y"], f"{where}.y")))
-        r = _number(e["radius"], f"{where}.radius")
+        xy.append((finite_number(e["x"], f"{where}.x"), finite_number(e["y"], f"{where}.y")))
+        r = finite_number(e["radius"], f"{where}.radius")
         if r <= 0:
             raise ConfigError(f"{where}.radius: must be > 0 m, got {r}")
         radius.append(r)

@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from mmpa.errors import ConfigError, UnknownNameError
 from mmpa.geometry import Array, quat_xyzw_to_R, wrap_angle
-from mmpa.yamlio import load_yaml_text
+from mmpa.yamlio import load_yaml
 
 __all__ = [
     "FIXED_KINDS",
@@ -402,15 +402,7 @@ def parse_scene(data: object, source: str = "<scene>") -> SceneConfig:
 def load_scene(path: str | Path | None = None) -> SceneConfig:
     """Load a scene YAML (default: the built-in world)."""
     path = Path(path) if path is not None else default_scene_path()
-    try:
-        raw = path.read_bytes()
-    except OSError as e:
-        raise ConfigError(f"cannot read scene file {path}: {e.strerror}") from None
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as e:
-        raise ConfigError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
-    return parse_scene(load_yaml_text(text, str(path)), str(path))
+    return parse_scene(load_yaml(path, what="scene file"), str(path))
 
 
 def default_scene_path() -> Path:
