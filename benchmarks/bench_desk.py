@@ -23,7 +23,9 @@ Cases (source ``i``, target ``j``; the reference ``T_j_i = inv(P_j) P_i`` from t
   ``j`` by the given poses (kept when at least 5000 points remain); all must be refused;
 - projective: ``refine_projective`` of the full-resolution source points on the target depth
   image, from the ICP pose of ``--projective`` accepted neighbour pairs (ok, and its
-  disagreement with the ICP pose in mm).
+  disagreement with the ICP pose in mm);
+- projective loops: the 3-view loop closure of the projective refinement (``k = 1, 2``
+  pairs, from their ICP poses), depth only and depth + colour (the photometric term).
 
 A pose is wrong when accepted and more than 30 mm (centroid displacement) from the given pose,
 or (for neighbours) more than 5 mm from the inverse of its accepted reverse. Prints one table
@@ -212,6 +214,33 @@ def main() -> None:
             proj_fail.append(pr.inlier_fraction)
             proj_reasons[k] = proj_reasons.get(k, 0) + 1
 
+    # 3-view loops of the projective refinement, depth only and depth + colour (the
+    # photometric term), each from the accepted ICP pose of its pair
+    pcfgs = {"depth": pcfg.model_copy(update={"photometric_sigma": None}), "depth+colour": pcfg}
+    pj: dict[str, dict] = {name: {} for name in pcfgs}
+    pj_s: dict[str, list[float]] = {name: [] for name in pcfgs}
+    for i, j in pairs:
+        if j - i > 2 or not reg[i, j].ok:
+            continue
+        for name, c in pcfgs.items():
+            colour = (
+                {"source_colors": frames[i]["cloud"].colors, "target_color": frames[j]["color"]}
+                if c.photometric_sigma is not None
+                else {}
+            )
+            pr = refine_projective(
+                frames[i]["cloud"].points, frames[j]["depth"], intr, reg[i, j].T, c, **colour
+            )
+            pj[name][i, j] = pr
+            pj_s[name].append(pr.seconds)
+    proj_loops: dict[str, list[float]] = {}
+    for name, d in pj.items():
+        proj_loops[name] = [
+            motion_mm(d[i + 1, i + 2].T @ d[i, i + 1].T, d[i, i + 2].T, cents[i])
+            for i in range(n - 2)
+            if all((a, b) in d and d[a, b].ok for a, b in ((i, i + 1), (i + 1, i + 2), (i, i + 2)))
+        ]
+
     print(f"registrations: {len(reg)} in {t_pairs:.1f} s (+ far)")
     print(
         f"{'case':<20}{'pairs':>6}{'ok':>6}{'refused':>8}{'wrong':>6}"
@@ -237,6 +266,12 @@ def main() -> None:
         f"{_stats(proj_dev)} mm; refusals {proj_reasons}"
         + (f" (inlier fraction of the refused {_stats(proj_fail)})" if proj_fail else "")
     )
+    for name, lp in proj_loops.items():
+        n_ok = sum(r.ok for r in pj[name].values())
+        print(
+            f"projective {name}: {n_ok}/{len(pj[name])} ok; 3-view loops ({len(lp)}): closure "
+            f"median / max {_stats(lp)} mm; median {np.median(pj_s[name]):.2f} s per pair"
+        )
     print("refusal reasons:", dict(sorted(reasons.items(), key=lambda kv: -kv[1])))
     out.update(
         reverse_mm=rev,
@@ -246,6 +281,7 @@ def main() -> None:
         projective_n=proj_n,
         projective_dev_mm=proj_dev,
         reasons=reasons,
+        projective_loops_mm=proj_loops,
     )
     if a.json:
         a.json.write_text(json.dumps(out, indent=1))

@@ -240,5 +240,6 @@ def test_depth_scale_fault_is_refused_and_the_arm_stays(site1, caplog):
     assert not res.ok and not res.executed and res.joint_path is None
     assert "depth calibration fault" in res.reason, res.reason
     pr = res.ipe.iterations[-1].projective
-    assert pr.scale == pytest.approx(1.03, abs=0.01)  # taught depth scaled onto the faulty
+    # the taught depth scaled onto the faulty one (scale and disparity offset together)
+    assert pr.stages["effective_scale"] == pytest.approx(1.03, abs=0.01)
     np.testing.assert_allclose(w.arm.joint_positions(), res.ipe.iterations[-1].q, atol=1e-6)

@@ -5,8 +5,9 @@ an intrinsics file (:func:`load_intrinsics`), or from a ROS 1 / ROS 2 bag throug
 :class:`~mmpa.backends.bag.BagCamera` (the frames nearest to two times, :func:`frames_from_bag`).
 :func:`register_frames` deprojects both (depth cropped to the config's
 ``[min_depth, max_depth]``), runs :func:`mmpa.registration.register` and, with ``refine``,
-:func:`mmpa.registration.refine_projective` on frame 2's depth image from the accepted ICP
-pose. The pose is ``T_2_1``: ``p_frame2 = T p_frame1`` (camera optical frames, metres).
+:func:`mmpa.registration.refine_projective` on frame 2's depth and colour images (depth +
+photometric) from the accepted ICP pose. The pose is ``T_2_1``: ``p_frame2 = T p_frame1``
+(camera optical frames, metres).
 :func:`summary` / :func:`write_outputs` give ``summary.json`` and ``T.csv``.
 """
 
@@ -231,7 +232,12 @@ def register_frames(
     proj = None
     T = icp.T
     if refine and icp.ok:
-        proj = refine_projective(c1.points, f2.depth, f2.intrinsics, icp.T, projective_cfg)
+        colour = (
+            {"source_colors": c1.colors, "target_color": f2.color} if c1.colors is not None else {}
+        )
+        proj = refine_projective(
+            c1.points, f2.depth, f2.intrinsics, icp.T, projective_cfg, **colour
+        )
         if proj.ok:
             T = proj.T
     return FrameRegistration(

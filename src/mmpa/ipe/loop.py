@@ -363,14 +363,22 @@ class IPE:
                 # a pose offset; no estimate from this camera is trusted. (Away from the
                 # viewpoint the scale trades with depth-wise motion and is not checked.)
                 result.reason = (
-                    f"iteration {k}: depth scale {pr.scale:.4f} against the teaching capture "
-                    f"(accepted 1 +- {cfg.projective.max_scale_error}): a depth calibration "
-                    "fault of the camera; no estimate"
+                    f"iteration {k}: depth scale {_depth_scale(pr):.4f} against the teaching "
+                    f"capture (accepted 1 +- {cfg.projective.max_scale_error}): a depth "
+                    "calibration fault of the camera; no estimate"
                 )
                 result.dT_B = None
                 return result
             if converged(dT_C, cfg.alpha):
                 result.ok = True
+                if pr is not None and pr.ok and isinstance(taught, PointCloud):
+                    # beyond the paper: the converged view once more with its colour image
+                    # (depth + photometric); the depth alone cannot tell a rotation about the
+                    # scene from a drift of the disparity between the sessions
+                    pc = _photometric(taught, cfg, pr, frame, self.robot)
+                    if pc is not None:
+                        pr = pc
+                        result.dT_B = delta_T_B(T_Bk_Ck, pc.T, T_Bo_Co)
                 result.projective = pr  # dT_B above already comes from it when ok
                 if isinstance(taught, PointCloud):
                     t5 = time.perf_counter()
@@ -398,16 +406,56 @@ class IPE:
         return result
 
 
+def _photometric(
+    taught: PointCloud,
+    cfg: IPEConfig,
+    pr: ProjectiveResult,
+    frame: RGBDFrame,
+    robot: RobotDescription,
+) -> ProjectiveResult | None:
+    """The joint depth + colour refinement of the converged view from the depth-only
+    refinement ``pr`` (:func:`refine_projective` with the source colours and the target
+    colour image); None when it is off (``photometric_sigma`` None, a cloud without colours)
+    or refused (the depth-only result then stands)."""
+    pcfg = cfg.projective
+    if pcfg is None or pcfg.photometric_sigma is None or taught.colors is None:
+        return None
+    p = np.asarray(taught.points, float)
+    z = p[:, 2]
+    keep = (z >= cfg.min_depth) & (z <= cfg.max_depth)
+    cam = robot.camera
+    res = refine_projective(
+        p[keep],
+        frame.depth,
+        frame.intrinsics,
+        pr.T,
+        pcfg,
+        disparity_fb=cam.depth_focal_native * cam.baseline,
+        source_colors=np.asarray(taught.colors)[keep],
+        target_color=frame.color,
+    )
+    if not res.ok:
+        _log.info("IPE: the photometric refinement refused (%s); depth only", res.reason)
+        return None
+    return res
+
+
 def _scale_fault(pr: ProjectiveResult | None, cfg: IPEConfig) -> bool:
     """The projective refinement refused a view for its depth scale alone: enough inliers,
-    ``|s - 1|`` beyond ``max_scale_error``."""
+    ``|s - 1|`` beyond ``max_scale_error`` (``s`` with the disparity offset folded in)."""
     return (
         pr is not None
         and cfg.projective is not None
         and not pr.ok
         and pr.n_inliers >= cfg.projective.min_inliers
-        and abs(pr.scale - 1.0) > cfg.projective.max_scale_error
+        and abs(_depth_scale(pr) - 1.0) > cfg.projective.max_scale_error
     )
+
+
+def _depth_scale(pr: ProjectiveResult) -> float:
+    """The relative depth scale of the two captures at the scene's median depth (the scale
+    and the disparity offset together: ``stages["effective_scale"]``)."""
+    return float(pr.stages.get("effective_scale", pr.scale))
 
 
 def _source_points(taught: PointCloud, cfg: IPEConfig) -> Array:
