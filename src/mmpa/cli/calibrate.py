@@ -1,5 +1,6 @@
 """``mmpa calibrate``: calibrations run in the twin (``hand-eye``: the wrist camera on the
-flange from a ChArUco board, see :mod:`mmpa.experiments.calibrate`)."""
+flange from a ChArUco board; ``lidar-mount``; ``reflectors``: the reflector map surveyed
+from a drive; see :mod:`mmpa.experiments.calibrate`)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ from mmpa.errors import MMPAError
 __all__ = ["calibrate_app", "register"]
 
 calibrate_app = typer.Typer(
-    help="Calibrations in the twin: hand-eye (ChArUco board), lidar mount (a turn on the spot)."
+    help="Calibrations in the twin: hand-eye (ChArUco board), lidar mount (a turn on the spot), "
+    "reflectors (a survey drive)."
 )
 
 _PROFILES = ("ideal", "reference", "realistic", "harsh")
@@ -83,6 +85,93 @@ def lidar_mount_cmd(
         f"lidar mount: error {s['error_mm']:.2f} mm against the true mount (nominal "
         f"{s['nominal_error_mm']:.2f} mm; fit RMS {s['fit_rms_mm']:.2f} mm, {s['scans']} scans); "
         f"wrote {out}/summary.json and {out}/robot.yaml (use it: mmpa --robot {out}/robot.yaml)",
+        highlight=False,
+    )
+
+
+@calibrate_app.command("reflectors")
+def reflectors_cmd(
+    out: Annotated[
+        Path, typer.Option(help="output folder (reflectors.yaml, summary.json, robot.yaml)")
+    ],
+    site: Annotated[str, typer.Option(help="site the survey drive starts from")] = "0",
+    route: Annotated[
+        str, typer.Option(help="sites driven to, in order, comma-separated (e.g. 1,2,0)")
+    ] = "1,2,0",
+    spacing: Annotated[
+        float, typer.Option(help="m between survey stops along the path", min=0.1, max=100.0)
+    ] = 1.0,
+    scans: Annotated[int, typer.Option(help="scans per survey stop", min=1, max=1000)] = 10,
+    method: Annotated[str, typer.Option(help="laser-only localizer: hector or amcl")] = "hector",
+    anchor: Annotated[
+        str,
+        typer.Option(
+            help="placement of the surveyed layout: poses (the laser-only localization's "
+            "frame) or reflector-map (rigidly onto the site's existing reflector map)"
+        ),
+    ] = "poses",
+    map_match: Annotated[
+        bool,
+        typer.Option(
+            "--map-match/--no-map-match",
+            help="refine each stop's pose by matching its mean scan onto the map",
+        ),
+    ] = True,
+    refine: Annotated[
+        bool | None,
+        typer.Option(
+            "--refine/--no-refine",
+            help="joint pose/reflector refinement (default: only without --map-match)",
+        ),
+    ] = None,
+    seed: Annotated[int, typer.Option(help="robot instance of the twin's error model", min=0)] = 0,
+    profile: Annotated[
+        str, typer.Option(help="error model profile: ideal, reference, realistic, harsh")
+    ] = "realistic",
+) -> None:
+    """Survey the laser reflectors in the twin: drive ROUTE from SITE, stopping every
+    SPACING m; at each stop localize with the laser-only METHOD (no reflectors; the stop's
+    mean scan then matched onto the map) and detect the reflectors; cluster, fit (with the
+    scanner's range bias), optionally refine the poses and reflectors jointly; placed by
+    the poses or (ANCHOR reflector-map) onto the site's existing reflector map; compared
+    with the TRUE reflector positions; writes reflectors.yaml and robot.yaml."""
+    if profile not in _PROFILES:
+        raise typer.BadParameter(f"unknown profile {profile!r}; one of {list(_PROFILES)}")
+    if method not in ("hector", "amcl"):
+        raise typer.BadParameter(f"unknown laser-only localizer {method!r}; hector or amcl")
+    if anchor not in ("poses", "reflector-map"):
+        raise typer.BadParameter(f"unknown anchor {anchor!r}; poses or reflector-map")
+    stops = tuple(s.strip() for s in route.split(",") if s.strip())
+    if not stops:
+        raise typer.BadParameter("--route needs at least one site")
+    os.environ.setdefault("MUJOCO_GL", "osmesa")
+    os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+    try:
+        from mmpa.experiments.calibrate import ReflectorSurveyConfig, run_reflector_survey
+
+        cfg = ReflectorSurveyConfig(
+            site=site,
+            route=stops,
+            station_spacing=spacing,
+            scans=scans,
+            method=method,
+            anchor=anchor.replace("-", "_"),  # type: ignore[arg-type]
+            seed=seed,
+            profile=profile,  # type: ignore[arg-type]
+            map_match=map_match,
+            survey={} if refine is None else {"refine_poses": refine},
+        )
+        with console.status("surveying the reflectors"):
+            s = run_reflector_survey(cfg, out, log=lambda m: console.log(m, highlight=False))
+    except MMPAError as e:
+        fail(e)
+    d = s["diagnostic"]
+    console.print(
+        f"reflectors: {s['found']} found, {s['missed']} missed, {s['spurious']} spurious; "
+        f"error {s['error_mean_mm']:.2f} mm mean, {s['error_max_mm']:.2f} mm max against the "
+        f"true positions (the marked map: {d['marked_map']['error_mean_mm']:.2f} mm; fit RMS "
+        f"{s['residual_rms_mm']:.2f} mm, {s['stations']} stops); wrote {out}/reflectors.yaml, "
+        f"{out}/summary.json and {out}/robot.yaml (use it: mmpa --robot {out}/robot.yaml)",
         highlight=False,
     )
 

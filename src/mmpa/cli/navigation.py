@@ -5,13 +5,16 @@ from __future__ import annotations
 import json
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
 
 from mmpa.cli.common import ProfileOpt, console, fail, in_range, out_dir
 from mmpa.errors import MMPAError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from mmpa.localization.maps import OccupancyGrid
 
 __all__ = ["register"]
 
@@ -28,7 +31,33 @@ def _errors(seed: int, profile: str | None):
     return load_config(ErrorModelConfig, None, sets)
 
 
+def _robot_reflector_map(ctx: typer.Context) -> Path | None:
+    """The ``reflector_map`` of the robot file given with ``mmpa --robot FILE``, or None."""
+    from mmpa.robot.robot_file import robot_reflector_map
+
+    path = ctx.find_root().params.get("robot")
+    return robot_reflector_map(path) if path is not None else None
+
+
+def _with_reflectors(grid: OccupancyGrid, path: Path | None) -> OccupancyGrid:
+    """``grid`` with the reflectors of the reflector map file ``path`` (None: as it is)."""
+    if path is None:
+        return grid
+    import dataclasses
+
+    import numpy as np
+
+    from mmpa.errors import ConfigError
+    from mmpa.localization.reflector_map import load_reflector_map
+
+    rm = load_reflector_map(path)
+    if np.ptp(rm.radius) > 1e-9:
+        raise ConfigError(f"{path}: reflectors of different radii; the localizer takes one")
+    return dataclasses.replace(grid, reflectors=rm.xy.copy(), reflector_radius=float(rm.radius[0]))
+
+
 def navigate_cmd(
+    ctx: typer.Context,
     to: Annotated[str, typer.Option("--to", help="Goal site (e.g. 1, 2).")],
     start: Annotated[str, typer.Option("--from", help="Start site.")] = "0",
     method: Annotated[
@@ -43,6 +72,13 @@ def navigate_cmd(
     record: Annotated[
         Path | None,
         typer.Option(help="Record the drive to this ROS 2 bag (FILE.mcap, or a rosbag2 folder)."),
+    ] = None,
+    reflectors: Annotated[
+        Path | None,
+        typer.Option(
+            help="Reflector map file (id, x, y, radius) replacing the twin's reflectors "
+            "(default: the robot file's reflector_map, e.g. from mmpa calibrate reflectors)."
+        ),
     ] = None,
 ) -> None:
     """Drive the twin from a site to ``--to`` on the localization estimate (started from the
@@ -60,9 +96,10 @@ def navigate_cmd(
     bag = None
     try:
         errors = _errors(seed, profile)
+        refl_map = reflectors or _robot_reflector_map(ctx)
         with SimWorld(errors=errors, site=start) as world, ExitStack() as stack:
             goal = world.scene.site(to).pose2d
-            grid = twin_map(world)
+            grid = _with_reflectors(twin_map(world), refl_map)
             loc = make_localizer(method, grid, laser_pose2d(world), np.random.default_rng(seed))
             robot = world
             if record is not None:  # the same run, observed (mmpa.bags.Recorder)
@@ -92,6 +129,8 @@ def navigate_cmd(
         "localization_error_xy_mm": round(1000 * float(np.hypot(e[0], e[1])), 2),
         "localization_error_yaw_deg": round(float(np.rad2deg(abs(e[2]))), 3),
     }
+    if refl_map is not None:
+        summary["reflector_map"] = str(refl_map)
     if bag is not None:
         summary["bag"] = str(record)
         summary["bag_messages"] = sum(bag.counts.values())

@@ -13,6 +13,11 @@ plus two shortcuts under ``arm``:
   (``theta_offset += delta_theta``, ``a += delta_a``, ``d += delta_d``,
   ``alpha += delta_alpha``). A relative path is read beside the robot file.
 
+``reflector_map: FILE`` (optional, default none) names the site's surveyed reflector map
+(:mod:`mmpa.localization.reflector_map`; written by ``mmpa calibrate reflectors``); a
+relative path is read beside the robot file (:func:`robot_reflector_map`). It is not part
+of the :class:`RobotDescription`: :func:`load_robot` accepts and skips it.
+
 ``frames`` names mmpa's frames as a ROS system does (REP-105 for the base, ur_description
 for the arm), with optional prefixes; :func:`frame_names` maps mmpa's names to them.
 
@@ -46,6 +51,7 @@ __all__ = [
     "frame_names",
     "load_robot",
     "read_ur_calibration",
+    "robot_reflector_map",
     "robot_to_yaml",
     "save_robot",
 ]
@@ -214,6 +220,7 @@ def load_robot(path: str | Path) -> tuple[RobotDescription, FrameNames]:
     if not isinstance(doc, dict):
         raise ConfigError(f"{p}: a robot file must be a YAML mapping")
     doc = dict(doc)
+    _reflector_map_entry(doc.pop("reflector_map", None), p)
     try:
         frames = FrameNames.model_validate(doc.pop("frames", None) or {})
     except ValidationError as e:
@@ -223,6 +230,31 @@ def load_robot(path: str | Path) -> tuple[RobotDescription, FrameNames]:
         return RobotDescription.model_validate(doc), frames
     except ValidationError as e:
         raise ConfigError(f"{p}: {_first_error(e)}") from None
+
+
+def _reflector_map_entry(value: Any, where: Path) -> Path | None:
+    """The ``reflector_map`` entry of robot file ``where``: None, or the path (a relative one
+    resolved beside the robot file)."""
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value.strip():
+        raise ConfigError(
+            f"{where}: reflector_map: must be the path of a reflector map file, got {value!r}"
+        )
+    path = Path(value)
+    return path if path.is_absolute() else where.parent / path
+
+
+def robot_reflector_map(path: str | Path) -> Path | None:
+    """The reflector map file named by robot file ``path`` (its optional ``reflector_map``
+    entry, resolved beside the robot file), or None. The map itself is not read here."""
+    p = Path(path)
+    doc = load_yaml(p)
+    if doc is None:
+        return None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{p}: a robot file must be a YAML mapping")
+    return _reflector_map_entry(doc.get("reflector_map"), p)
 
 
 def _first_error(e: ValidationError) -> str:
@@ -240,18 +272,31 @@ _Dumper.add_representer(
 )
 
 
-def robot_to_yaml(robot: RobotDescription, frames: FrameNames | None = None) -> str:
-    """The robot file text of ``robot`` (every field, so it is a complete template)."""
+def robot_to_yaml(
+    robot: RobotDescription,
+    frames: FrameNames | None = None,
+    reflector_map: str | Path | None = None,
+) -> str:
+    """The robot file text of ``robot`` (every field, so it is a complete template), with
+    the optional ``reflector_map`` entry when given."""
     doc = robot.model_dump(mode="json")
     doc["frames"] = (frames or FrameNames()).model_dump(mode="json")
+    if reflector_map is not None:
+        doc["reflector_map"] = str(reflector_map)
     return yaml.dump(doc, Dumper=_Dumper, sort_keys=False, width=100)
 
 
-def save_robot(robot: RobotDescription, path: str | Path, frames: FrameNames | None = None) -> Path:
-    """Write ``robot`` as a robot file (written to a temporary file, then renamed)."""
+def save_robot(
+    robot: RobotDescription,
+    path: str | Path,
+    frames: FrameNames | None = None,
+    reflector_map: str | Path | None = None,
+) -> Path:
+    """Write ``robot`` as a robot file (written to a temporary file, then renamed);
+    ``reflector_map``: the optional entry (a relative path is read beside the file)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(robot_to_yaml(robot, frames), encoding="utf-8")
+    tmp.write_text(robot_to_yaml(robot, frames, reflector_map), encoding="utf-8")
     tmp.replace(p)
     return p
