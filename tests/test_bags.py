@@ -467,6 +467,15 @@ def test_localize_cli_writes_the_run_folder(twin_recording, tmp_path) -> None:
     assert r.exit_code == 0, r.output
     rows3 = np.loadtxt(out3 / "estimate.csv", delimiter=",", skiprows=1)
     np.testing.assert_allclose(rows3, rows, atol=1e-9)
+    # the reflector map named by the robot file (mmpa --robot FILE): the same estimates
+    robot_yaml = tmp_path / "robot.yaml"
+    robot_yaml.write_text("reflector_map: reflectors.yaml\n")
+    out4 = tmp_path / "loc4"
+    args4 = ["--robot", str(robot_yaml), *args[:-1], str(out4), "--seed", "7", "--force"]
+    r = CliRunner().invoke(app, args4)
+    assert r.exit_code == 0, r.output
+    rows4 = np.loadtxt(out4 / "estimate.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(rows4, rows, atol=1e-9)
     r = CliRunner().invoke(app, [*args, "--seed", "7", "--force"])  # no reflectors at all
     assert r.exit_code == 2 and "needs >= 3 reflector landmarks; the map holds 0" in r.output
     bad = CliRunner().invoke(

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from mmpa.cli.common import console, fail, out_dir
+from mmpa.cli.common import console, fail, out_dir, robot_reflector_map
 from mmpa.errors import MMPAError
 
 __all__ = ["register"]
@@ -26,6 +26,7 @@ def _pose3(text: str | None, what: str) -> tuple[float, float, float] | None:
 
 
 def localize_cmd(
+    ctx: typer.Context,
     bag: Annotated[Path, typer.Option("--bag", help="ROS 1 .bag, rosbag2 folder, .mcap or .db3.")],
     map_yaml: Annotated[
         Path | None,
@@ -33,7 +34,10 @@ def localize_cmd(
     ] = None,
     reflectors: Annotated[
         Path | None,
-        typer.Option(help="Reflector map file (id, x, y, radius) replacing the map's reflectors."),
+        typer.Option(
+            help="Reflector map file (id, x, y, radius) replacing the map's reflectors "
+            "(default: the robot file's reflector_map, mmpa --robot FILE)."
+        ),
     ] = None,
     method: Annotated[
         str, typer.Option(help="amcl | enhanced | enhanced-paper | trilateration | tamcl | hector")
@@ -73,7 +77,8 @@ def localize_cmd(
             topics=BagTopics(scan=scan_topic, odom=odom_topic),
         )
         with console.status(f"localizing over {bag}"):
-            summary = run_localize(bag, out_dir(out), map_yaml, cfg, reflectors=reflectors)
+            refl = reflectors or robot_reflector_map(ctx)
+            summary = run_localize(bag, out_dir(out), map_yaml, cfg, reflectors=refl)
     except MMPAError as e:
         fail(e)
     from rich.table import Table

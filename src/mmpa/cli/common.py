@@ -106,3 +106,13 @@ ExecutorOpt = Annotated[str, typer.Option(help="Where trials run: local (process
 RayAddressOpt = Annotated[
     str | None, typer.Option(help="Ray cluster to connect to (--executor ray).")
 ]
+
+
+def robot_reflector_map(ctx: typer.Context) -> Path | None:
+    """The ``reflector_map`` of the robot file given with ``mmpa --robot FILE``, or None
+    (the root command's ``robot`` parameter: typer bundles its own click, so click's context
+    lookup does not see it)."""
+    from mmpa.robot.robot_file import robot_reflector_map as entry
+
+    path = ctx.find_root().params.get("robot")
+    return entry(path) if path is not None else None

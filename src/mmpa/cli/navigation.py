@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.table import Table
 
-from mmpa.cli.common import ProfileOpt, console, fail, in_range, out_dir
+from mmpa.cli.common import ProfileOpt, console, fail, in_range, out_dir, robot_reflector_map
 from mmpa.errors import MMPAError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -29,14 +29,6 @@ def _errors(seed: int, profile: str | None):
 
     sets = [f"seed={seed}"] + ([] if profile is None else [f"profile={profile}"])
     return load_config(ErrorModelConfig, None, sets)
-
-
-def _robot_reflector_map(ctx: typer.Context) -> Path | None:
-    """The ``reflector_map`` of the robot file given with ``mmpa --robot FILE``, or None."""
-    from mmpa.robot.robot_file import robot_reflector_map
-
-    path = ctx.find_root().params.get("robot")
-    return robot_reflector_map(path) if path is not None else None
 
 
 def _with_reflectors(grid: OccupancyGrid, path: Path | None) -> OccupancyGrid:
@@ -96,7 +88,7 @@ def navigate_cmd(
     bag = None
     try:
         errors = _errors(seed, profile)
-        refl_map = reflectors or _robot_reflector_map(ctx)
+        refl_map = reflectors or robot_reflector_map(ctx)
         with SimWorld(errors=errors, site=start) as world, ExitStack() as stack:
             goal = world.scene.site(to).pose2d
             grid = _with_reflectors(twin_map(world), refl_map)
