@@ -34,26 +34,46 @@ def hand_eye_cmd(
     profile: Annotated[
         str, typer.Option(help="error model profile: ideal, reference, realistic, harsh")
     ] = "realistic",
+    method: Annotated[
+        str,
+        typer.Option(
+            help="joint: the arm's DH corrections with the hand-eye (MAP over the board "
+            "corners); opencv: cv2.calibrateHandEye with the nominal kinematics"
+        ),
+    ] = "opencv",
 ) -> None:
     """Calibrate the wrist camera's pose on the flange (eye-in-hand) in the twin: a ChArUco
     board in front of SITE, STATIONS planned views, cv2.calibrateHandEye with all five
-    methods, the one with the smallest residuals picked, compared with the TRUE hand-eye."""
+    methods (the one with the smallest residuals picked), then the joint kinematic +
+    hand-eye calibration from it; both compared with the TRUE hand-eye, METHOD's written."""
     if profile not in _PROFILES:
         raise typer.BadParameter(f"unknown profile {profile!r}; one of {list(_PROFILES)}")
+    if method not in ("joint", "opencv"):
+        raise typer.BadParameter(f"unknown method {method!r}; one of ['joint', 'opencv']")
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
     try:
         from mmpa.experiments.calibrate import HandEyeConfig, run_hand_eye
 
-        cfg = HandEyeConfig(site=site, stations=stations, seed=seed, profile=profile)  # type: ignore[arg-type]
+        cfg = HandEyeConfig(
+            site=site,
+            stations=stations,
+            seed=seed,
+            profile=profile,  # type: ignore[arg-type]
+            method=method,  # type: ignore[arg-type]
+        )
         s = run_hand_eye(cfg, out, log=lambda m: console.print(m, highlight=False))
     except MMPAError as e:
         fail(e)
     console.print(
         f"hand-eye ({s['method']}, {s['stations_used']} stations): error "
         f"{s['error_trans_mm']:.3f} mm, {s['error_rot_deg']:.4f} deg against the true hand-eye "
-        f"(board spread {s['residuals']['point_rms_mm']:.3f} mm RMS); wrote {out}/summary.json, "
-        f"{out}/hand_eye.yaml and {out}/robot.yaml (use it: mmpa --robot {out}/robot.yaml ...)",
+        f"(opencv {s['by_method']['opencv']['error_trans_mm']:.3f} mm, joint "
+        f"{s['by_method']['joint']['error_trans_mm']:.3f} mm; tool-point FK error "
+        f"{s['kinematics']['fk_error']['tcp']['nominal']['rms_mm']:.2f} -> "
+        f"{s['kinematics']['fk_error']['tcp']['calibrated']['rms_mm']:.2f} mm RMS); wrote "
+        f"{out}/summary.json, {out}/hand_eye.yaml and {out}/robot.yaml (use it: mmpa --robot "
+        f"{out}/robot.yaml ...)",
         highlight=False,
     )
 

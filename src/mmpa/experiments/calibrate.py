@@ -39,10 +39,19 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.calibration.charuco import BoardNotFoundError, board_pose
 from mmpa.calibration.hand_eye import (
+    board_consistency,
     calibrate_hand_eye,
     pair_motion_stats,
     plan_stations,
     pose_error,
+)
+from mmpa.calibration.kinematic import (
+    DH_GROUPS,
+    BoardObservations,
+    JointCalibrationConfig,
+    calibrate_kinematics_hand_eye,
+    fk_point_error,
+    random_configurations,
 )
 from mmpa.calibration.reflector_survey import SurveyConfig
 from mmpa.errors import MMPAError
@@ -59,33 +68,62 @@ __all__ = [
     "run_hand_eye",
     "run_lidar_mount",
     "run_reflector_survey",
+    "ur_calibration_conf",
     "write_robot_file",
 ]
 
 
 class HandEyeConfig(BaseModel):
     """The run: ``site``, ``stations`` views, the twin's error ``profile`` and ``seed`` (the
-    robot instance), the board and where it stands, frames averaged per station."""
+    robot instance), the board and where it stands, frames averaged per station.
+
+    ``method``: ``joint`` (the arm's DH corrections, the hand-eye and the board pose in one
+    MAP estimate over the board corners, :mod:`mmpa.calibration.kinematic`, started from the
+    best OpenCV solution) or ``opencv`` (``cv2.calibrateHandEye`` with the nominal
+    kinematics, best of five methods); both are solved and reported, ``method`` is the one
+    written out. ``joint``: its priors and noise (:class:`JointCalibrationConfig`; the
+    pixel noise is the stations' pooled PnP reprojection RMS unless given). The view
+    planning grid: camera ``distances`` (m) from the board centre, cone ``tilts_deg`` from
+    its normal, ``rolls_deg`` about the optical axis (:func:`plan_stations`)."""
 
     model_config = ConfigDict(extra="forbid")
 
     site: str = "0"
-    stations: int = Field(15, ge=3, le=100)
+    stations: int = Field(30, ge=3, le=100)
     seed: int = Field(0, ge=0)
     profile: ProfileName = "realistic"
     board: CharucoBoardSpec = CharucoBoardSpec()
     placement: BoardPlacement | None = None  # None: BoardPlacement.for_site(scene, site)
     min_corners: int = Field(12, ge=4)
     settle_s: float = Field(0.5, ge=0)
+    # default opencv: the joint estimate was not better in translation in the twin (issue 23)
+    method: Literal["joint", "opencv"] = "opencv"
+    # per-station arm-base displacement priors: the twin's (and a real platform's) mount
+    # compliance and wheel settling move the arm base by ~0.01-0.02 deg between stations
+    joint: JointCalibrationConfig = JointCalibrationConfig(
+        station_rot_sigma_deg=0.02, station_shift_sigma_mm=0.05
+    )
+    pixel_sigma: float | None = Field(None, gt=0)
+    # the wider grid (0.3-0.6 m, tilts to 60 deg, rolls +-90 deg) identifies the camera's
+    # depth axis better on synthetic data but gave outlier views in the twin (seed 1 without
+    # DH error, 8-15 stations: 4-5 mm), so the default stays the original grid
+    distances: tuple[float, ...] = (0.40, 0.48)
+    tilts_deg: tuple[float, ...] = (0.0, 15.0, 25.0, 35.0)
+    rolls_deg: tuple[float, ...] = (-40.0, 0.0, 40.0)
+    fk_eval_configurations: int = Field(500, ge=1, le=100000)
 
 
 def hand_eye_yaml(
-    X: Array, method: str, frames: tuple[str, str] = ("flange", "camera_optical")
+    X: Array,
+    method: str,
+    frames: tuple[str, str] = ("flange", "camera_optical"),
+    dh: DHParameters | None = None,
 ) -> str:
     """``hand_eye.yaml``: the estimate as a 4x4 (m) with its frames, and the robot file's
-    ``camera: {T_flange_camera_vec: [...]}`` section (paste or merge into a robot file)."""
+    ``camera: {T_flange_camera_vec: [...]}`` section (paste or merge into a robot file);
+    with ``dh`` (the calibrated kinematics the hand-eye belongs to) also ``arm: {dh: ...}``."""
     X = np.asarray(X, float)
-    doc = {
+    doc: dict[str, Any] = {
         "hand_eye": {
             "parent_frame": frames[0],
             "child_frame": frames[1],
@@ -96,7 +134,45 @@ def hand_eye_yaml(
         },
         "camera": {"T_flange_camera_vec": [float(v) for v in T_to_vec6(X)]},
     }
+    if dh is not None:
+        doc["arm"] = {"dh": {k: [float(v) for v in vals] for k, vals in dh.model_dump().items()}}
     return yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120)
+
+
+def ur_calibration_conf(deltas: dict[str, Array]) -> str:
+    """The DH corrections ``deltas`` (keys ``delta_theta, delta_a, delta_d, delta_alpha``,
+    6 values each, rad and m) as a UR controller's ``calibration.conf`` (``[mounting]``):
+    a robot file takes it with ``arm: {calibration: calibration.conf}``
+    (:func:`mmpa.robot.robot_file.read_ur_calibration`)."""
+    lines = ["[mounting]"]
+    for k in DH_GROUPS:
+        vals = np.asarray(deltas[k], float).reshape(6)
+        lines.append(f"{k} = [{', '.join(repr(float(v)) for v in vals)}]")
+    return "\n".join(lines) + "\n"
+
+
+def _method_errors(X: Array, X_true: Array, E6: Array) -> dict[str, float]:
+    """A hand-eye estimate against the TRUE one and against the effective one ``E6 X_true``
+    (the most any camera data can give with the nominal last link, :func:`last_link_error`)."""
+    et, er = pose_error(X, X_true)
+    ft, fr = pose_error(X, E6 @ X_true)
+    return {
+        "error_trans_mm": et,
+        "error_rot_deg": er,
+        "error_vs_effective_trans_mm": ft,
+        "error_vs_effective_rot_deg": fr,
+    }
+
+
+def _true_deltas(dh: DHParameters, true_dh: DHParameters) -> dict[str, list[float]]:
+    """The TRUE DH errors (true - nominal) in the units of the calibration summary (mm, deg)."""
+    a, d, al, th = (t - n for t, n in zip(true_dh.as_arrays(), dh.as_arrays(), strict=True))
+    return {
+        "delta_theta": [float(v) for v in np.rad2deg(th)],
+        "delta_a": [float(v) for v in a * 1e3],
+        "delta_d": [float(v) for v in d * 1e3],
+        "delta_alpha": [float(v) for v in np.rad2deg(al)],
+    }
 
 
 def last_link_error(dh_nominal: DHParameters, dh_true: DHParameters) -> Array:
@@ -188,10 +264,24 @@ def _run(
     log(f"board found: {pose0.n_corners} corners, {pose0.rms_px:.3f} px RMS")
 
     # 2. stations around the measured board
-    stations = plan_stations(dh, q_lim, Y0, X_nom, corners, K, size, cfg.stations, q0)
+    stations = plan_stations(
+        dh,
+        q_lim,
+        Y0,
+        X_nom,
+        corners,
+        K,
+        size,
+        cfg.stations,
+        q0,
+        distances=cfg.distances,
+        tilts_deg=cfg.tilts_deg,
+        rolls_deg=cfg.rolls_deg,
+    )
 
     # 3. visit them
     G, C, G_true_map, G_true_ab, rows = [], [], [], [], []
+    obs_q, obs_P, obs_u, obs_rms = [], [], [], []
     T_map_board = T_map_board_truth(world, spec)
     for i, st in enumerate(stations):
         world.arm.move_joints(st.q, settle=cfg.settle_s)
@@ -207,6 +297,10 @@ def _run(
         pnp_t, pnp_r = pose_error(pose.T_camera_board, C_true)
         G.append(fk(dh, q))
         C.append(pose.T_camera_board)
+        obs_q.append(q)
+        obs_P.append(pose.detection.object_points)
+        obs_u.append(pose.detection.image_points)
+        obs_rms.append(pose.rms_px)
         G_true_map.append(world.truth.T_map_flange())
         G_true_ab.append(inv(world.truth.T_map_arm_base()) @ G_true_map[-1])
         rows.append(
@@ -244,7 +338,49 @@ def _run(
             "axxb_trans_mm": r.axxb_trans_mm,
             "axxb_rot_deg": r.axxb_rot_deg,
         }
-    X = res.T_flange_camera
+    X_cv = res.T_flange_camera
+    true_dh = world.true_robot.arm.dh
+    E6 = last_link_error(dh, true_dh)
+    by_method: dict[str, Any] = {
+        "opencv": _method_errors(X_cv, X_true, E6) | {"opencv_method": res.best}
+    }
+    # 5. joint kinematic + hand-eye calibration, from the best OpenCV solution
+    obs = BoardObservations.from_lists(obs_q, obs_P, obs_u)
+    # pixel noise: the pooled PnP reprojection RMS of the stations
+    pix = cfg.pixel_sigma or max(float(np.sqrt(np.mean(np.square(obs_rms)))), 0.05)
+    jcfg = cfg.joint.model_copy(update={"pixel_sigma": pix})
+    t_joint = time.perf_counter()
+    Y_cv = board_consistency(G, C, X_cv, corners).T_base_board
+    joint = calibrate_kinematics_hand_eye(dh, obs, K, X_cv, Y_cv, jcfg)
+    joint_s = time.perf_counter() - t_joint
+    by_method["joint"] = _method_errors(joint.T_flange_camera, X_true, E6) | {"solve_s": joint_s}
+    log(
+        f"joint calibration: {joint.rms_px_start:.3f} -> {joint.rms_px:.3f} px RMS, "
+        f"{joint.n_identified} DH directions identified, {joint_s:.1f} s"
+    )
+    # the kinematics against the TRUE arm over random configurations (evaluation only)
+    qs = random_configurations(cfg.fk_eval_configurations, cfg.seed, *q_lim)
+    X_dh = joint.T_flange_camera
+    tcp = nominal.gripper.T_flange_tcp
+    tcp_true = world.true_robot.gripper.T_flange_tcp
+    fk_eval = {
+        "configurations": len(qs),
+        "flange": {
+            "nominal": fk_point_error(dh, true_dh, qs),
+            "calibrated": fk_point_error(joint.dh, true_dh, qs),
+        },
+        "tcp": {
+            "nominal": fk_point_error(dh, true_dh, qs, tcp, tcp_true),
+            "calibrated": fk_point_error(joint.dh, true_dh, qs, tcp, tcp_true),
+        },
+        "camera": {
+            "nominal_opencv": fk_point_error(dh, true_dh, qs, X_cv, X_true),
+            "calibrated_joint": fk_point_error(joint.dh, true_dh, qs, X_dh, X_true),
+        },
+    }
+    X = X_dh if cfg.method == "joint" else X_cv
+    method_name = "joint" if cfg.method == "joint" else res.best
+    out_dh = joint.dh if cfg.method == "joint" else dh
     err_t, err_r = pose_error(X, X_true)
     nom_t, nom_r = pose_error(X_nom, X_true)
     # diagnostic: the TRUE flange poses in map (no DH, mount or base error)
@@ -255,7 +391,6 @@ def _run(
     # the last link's DH error is a constant flange-side factor E6 (fk_true = fk_nom E6 when
     # only link 6 differs): no camera data can tell E6 X from X, so with nominal kinematics
     # every method can at best find X_eff = E6 X_true
-    E6 = last_link_error(dh, world.true_robot.arm.dh)
     eff_t, eff_r = pose_error(X, E6 @ X_true)
     e6_t, e6_r = pose_error(E6, np.eye(4))
     summary: dict[str, Any] = {
@@ -264,7 +399,8 @@ def _run(
         "seed": world.error_model.config.seed,
         "stations_planned": len(stations),
         "stations_used": len(G),
-        "method": res.best,
+        "method": method_name,
+        "opencv_method": res.best,
         "error_trans_mm": err_t,
         "error_rot_deg": err_r,
         "target": {"trans_mm": 0.5, "rot_deg": 0.1},
@@ -276,6 +412,7 @@ def _run(
             "axxb_trans_mm": res.methods[res.best].axxb_trans_mm,
             "axxb_rot_deg": res.methods[res.best].axxb_rot_deg,
         },
+        "by_method": by_method,
         "methods": table,
         "failed_methods": res.failed,
         "pose_selection": pair_motion_stats(G),
@@ -298,6 +435,12 @@ def _run(
                 np.sqrt(np.mean([r["pnp_error_rot_deg"] ** 2 for r in rows if r["used"]]))
             ),
         },
+        "kinematics": {
+            **joint.summary(),
+            "pixel_sigma": pix,
+            "true_deltas": _true_deltas(dh, true_dh),
+            "fk_error": fk_eval,
+        },
         "T_flange_camera": [[float(v) for v in row] for row in X],
         "T_flange_camera_true": [[float(v) for v in row] for row in X_true],
         "stations": rows,
@@ -307,15 +450,21 @@ def _run(
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-        (out / "hand_eye.yaml").write_text(hand_eye_yaml(X, res.best))
-        summary["robot_file"] = str(write_robot_file(X, out / "robot.yaml"))
+        (out / "hand_eye.yaml").write_text(
+            hand_eye_yaml(X, method_name, dh=joint.dh if cfg.method == "joint" else None)
+        )
+        summary["robot_file"] = str(write_robot_file(X, out / "robot.yaml", dh=out_dh))
+        if cfg.method == "joint":
+            (out / "calibration.conf").write_text(ur_calibration_conf(joint.deltas))
     return summary
 
 
-def write_robot_file(T_flange_camera: Array, path: str | Path) -> Path:
+def write_robot_file(
+    T_flange_camera: Array, path: str | Path, dh: DHParameters | None = None
+) -> Path:
     """The robot in use (``mmpa --robot FILE``, else the twin's) with the calibrated
-    ``camera.T_flange_camera``, written as a robot file: the next run takes it with
-    ``mmpa --robot PATH``."""
+    ``camera.T_flange_camera`` and, when given, the calibrated arm kinematics ``dh``,
+    written as a robot file: the next run takes it with ``mmpa --robot PATH``."""
     from mmpa.geometry import T_to_vec6
     from mmpa.robot.description import default_robot
     from mmpa.robot.robot_file import save_robot
@@ -323,7 +472,10 @@ def write_robot_file(T_flange_camera: Array, path: str | Path) -> Path:
     robot = default_robot()
     vec = tuple(float(v) for v in T_to_vec6(T_flange_camera))
     camera = robot.camera.model_copy(update={"T_flange_camera_vec": vec})
-    return save_robot(robot.with_updates(camera=camera.model_dump()), path)
+    updates: dict[str, Any] = {"camera": camera.model_dump()}
+    if dh is not None:
+        updates["arm"] = robot.arm.model_copy(update={"dh": dh}).model_dump()
+    return save_robot(robot.with_updates(**updates), path)
 
 
 def run_lidar_mount(
