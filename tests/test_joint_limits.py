@@ -12,9 +12,11 @@ from mmpa.robot.description import ArmDescription
 from mmpa.robot.limits import (
     JointLimits,
     check_path,
+    limit_acceleration,
     limit_setpoint,
     path_accelerations,
     path_velocities,
+    synchronized_limits,
 )
 
 ARM = ArmDescription()
@@ -118,6 +120,65 @@ def test_streaming_limiter_respects_limits_and_lands() -> None:
     assert abs(n * dt - t_trap) < 5 * dt
 
 
+def test_limit_acceleration_keeps_the_limits_and_the_direction() -> None:
+    """Closed form: a wanted velocity within reach is taken at once; one beyond it is
+    approached along ``v_des - v`` by exactly ``qdd_max dt`` on the binding joint; a stream
+    of such velocities passes ``check_path``'s velocity and acceleration checks."""
+    dt = 0.05
+    v0 = np.array([0.1, -0.2, 0.0, 0.3, 0.0, 0.0])
+    near = v0 + 0.5 * LIM.qdd_max * dt
+    np.testing.assert_array_equal(limit_acceleration(v0, near, dt, LIM), near)
+    far = v0 + np.array([2.0, 1.0, 0.0, -0.5, 0.0, 0.0])
+    v1 = limit_acceleration(v0, far, dt, LIM)
+    s = LIM.qdd_max[0] * dt / 2.0  # joint 1 binds: its change is 2.0 rad/s
+    np.testing.assert_allclose(v1, v0 + s * (far - v0))
+    fast = np.full(6, 10.0)  # past qd_max: scaled into it as a whole
+    v = np.zeros(6)
+    for _ in range(200):
+        v = limit_acceleration(v, fast, dt, LIM)
+    np.testing.assert_allclose(v, fast / np.max(fast / LIM.qd_max))
+    rng = np.random.default_rng(7)
+    q, v, qs = HOME.copy(), np.zeros(6), [HOME.copy()]
+    for _ in range(300):
+        v = limit_acceleration(v, rng.uniform(-4.0, 4.0, 6), dt, LIM)
+        q = q + v * dt
+        qs.append(q)
+    t = np.arange(len(qs)) * dt
+    qs = np.array(qs)
+    assert np.all(np.abs(path_velocities(t, qs)) <= LIM.qd_max * (1 + 1e-9))
+    assert np.all(np.abs(path_accelerations(t, qs)) <= LIM.qdd_max * (1 + 1e-9))
+    with pytest.raises(InvalidInputError, match="dt"):
+        limit_acceleration(v0, far, 0.0, LIM)
+
+
+def test_synchronized_limits_move_along_the_straight_line() -> None:
+    """Rest to rest through ``limit_setpoint`` with :func:`synchronized_limits`: every
+    sample lies on the joint-space segment, all joints arrive in the same period, and the
+    limits of ``LIM`` hold (the slowest joint at its own limits)."""
+    q0 = HOME.copy()
+    q1 = HOME + np.array([1.2, -0.3, 0.05, 0.0, 0.9, -0.6])
+    lim = synchronized_limits(q0, q1, LIM)
+    assert np.all(lim.qd_max <= LIM.qd_max * (1 + 1e-12))
+    assert np.all(lim.qdd_max <= LIM.qdd_max * (1 + 1e-12))
+    dt = 0.05
+    q, v, qs = q0.copy(), np.zeros(6), [q0.copy()]
+    while not np.array_equal(q, q1) and len(qs) < 500:
+        q, v = limit_setpoint(q, v, q1, dt, lim)
+        qs.append(q)
+    qs = np.array(qs)
+    frac = (qs - q0) / (q1 - q0 + (q1 == q0))  # fraction of the way per joint
+    moving = q1 != q0
+    assert np.ptp(frac[:, moving], axis=1).max() < 1e-9  # on the straight line
+    np.testing.assert_array_equal(qs[-1], q1)
+    t = np.arange(len(qs)) * dt
+    assert np.all(np.abs(path_accelerations(t, qs)) <= LIM.qdd_max * (1 + 1e-6))
+    # joint 1 binds (the longest way for its limits): the triangle/trapezoid closed form
+    vm, am = lim.qd_max[0], lim.qdd_max[0]
+    d = abs(q1[0] - q0[0])
+    t_move = d / vm + vm / am if d > vm**2 / am else 2 * np.sqrt(d / am)
+    assert abs(t[-1] - t_move) < 3 * dt
+
+
 # ------------------------------------------------------------------ the twin's arm
 
 
@@ -177,8 +238,11 @@ def test_command_stream_is_rate_limited(world, accel: bool) -> None:
     arm.move_joints(HOME)
     target = HOME + np.array([1.5, -0.5, 0.5, 0, 0, 0])
     saved = arm.stream_limits
-    if accel:
-        arm.stream_limits = arm.limits
+    # issue 22: the stream keeps the acceleration limits by default
+    np.testing.assert_array_equal(saved.qdd_max, LIM.qdd_max)
+    np.testing.assert_array_equal(saved.qd_max, LIM.qd_max)
+    if not accel:
+        arm.stream_limits = JointLimits(LIM.q_min, LIM.q_max, LIM.qd_max, np.full(6, np.inf))
     try:
         arm.command(target)  # a 1.5 rad jump as one servo set-point
         peak = _peak_speed(world, 2.0)
@@ -214,3 +278,34 @@ def test_tmma_replay_retimes_a_path_that_jumps(world) -> None:
     v = np.abs(path_velocities(rec_t, rec_q)).max(axis=0)
     assert np.all(v <= LIM.qd_max * 1.02)
     np.testing.assert_allclose(rec_q[-1], q[-1], atol=2e-3)
+
+
+def test_command_stream_follows_an_accelerating_stream_within_limits(world) -> None:
+    """Set-points every 10 ms along ``q(t) = q0 + A t^2 / 2`` on joints 1-3 (A = 0.8
+    qdd_max, within the limits): the applied set-point (``d.ctrl``) stays within 3 mrad of
+    the stream's closed form all the way (the hold braked the last physics step of every
+    period: it then reached only 0.6 qdd_max and lagged 66 mrad after 0.4 s). Switching
+    ``stream_acceleration_limited`` off lifts the qdd_max limit only, on restores it."""
+    arm = world.arm
+    arm.move_joints(HOME)
+    d = world.data
+    q0 = d.ctrl[world._arm_act].copy()
+    A = np.zeros(6)
+    A[:3] = 0.8 * LIM.qdd_max[:3]
+    lag = 0.0
+    for k in range(41):
+        arm.command(q0 + 0.5 * A * (0.01 * k) ** 2)
+        for i in range(5):
+            world.step(0.002)
+            t = 0.01 * k + 0.002 * (i + 1)
+            lag = max(lag, float(np.abs(d.ctrl[world._arm_act] - (q0 + 0.5 * A * t * t)).max()))
+    assert lag < 3e-3, lag
+    assert arm.stream_acceleration_limited
+    arm.stream_acceleration_limited = False
+    try:
+        assert np.all(np.isinf(arm.stream_limits.qdd_max))
+        np.testing.assert_array_equal(arm.stream_limits.qd_max, LIM.qd_max)
+    finally:
+        arm.stream_acceleration_limited = True
+    np.testing.assert_array_equal(arm.stream_limits.qdd_max, LIM.qdd_max)
+    arm.move_joints(HOME)

@@ -237,3 +237,117 @@ def test_surfaces_split_at_depth_steps():
     assert lab[1, 0] != lab[1, 5]
     n, lab = surfaces(P, z, 0.06)
     assert n == 1
+
+
+def test_ramp_profile_closed_form():
+    """Trapezoid (cruise reached) and triangle (too short): the duration, the distance at
+    the end, the speed and acceleration bounds by finite differences, the peak speed."""
+    from mmpa.servo.grasp import ramp_profile
+
+    for d, v, a, t_expect, v_peak in (
+        (0.3, 0.5, 2.0, 0.3 / 0.5 + 0.5 / 2.0, 0.5),  # d > v^2 / a: cruises at v
+        (0.1, 1.2, 1.0, 2 * np.sqrt(0.1 / 1.0), np.sqrt(0.1 * 1.0)),  # triangle
+    ):
+        duration, s = ramp_profile(d, v, a)
+        assert duration == pytest.approx(t_expect)
+        h = 1e-4
+        t = np.arange(0.0, duration + 5 * h, h)
+        x = np.array([s(ti) for ti in t])
+        assert x[0] == 0.0 and x[-1] == pytest.approx(d)
+        vel = np.diff(x) / h
+        assert vel.max() == pytest.approx(v_peak, rel=1e-3) and vel.min() >= -1e-9
+        assert np.abs(np.diff(vel) / h).max() <= a * (1 + 1e-3)
+    assert ramp_profile(0.0, 1.0, 1.0)[0] == 0.0
+    with pytest.raises(InvalidInputError):
+        ramp_profile(-0.1, 1.0, 1.0)
+
+
+def test_ramp_profile_without_an_acceleration_limit_is_constant_speed():
+    from mmpa.servo.grasp import ramp_profile
+
+    duration, s = ramp_profile(0.3, 1.2, np.inf)
+    assert duration == pytest.approx(0.25)
+    assert s(0.1) == pytest.approx(0.12) and s(1.0) == pytest.approx(0.3) and s(-1.0) == 0.0
+    with pytest.raises(InvalidInputError):
+        ramp_profile(0.3, np.inf, 1.0)
+
+
+class _RecordingArm:
+    """A streaming arm that records ``(clock s, set-point (6,))`` of each command."""
+
+    def __init__(self, clock):
+        self.clock = clock
+        self.sent: list[tuple[float, np.ndarray]] = []
+        self.stream_acceleration_limited = True
+
+    def command(self, q):
+        self.sent.append((self.clock[0], np.array(q, float)))
+
+
+def test_stream_reaches_a_joint_velocity_at_the_acceleration_limit_between_ticks():
+    """Limited ("always"): a step in the wanted joint velocity at a 20 Hz tick is streamed
+    at ``servo_rate_hz`` (100 Hz) as a ramp at ``joint_accel_fraction`` of qdd_max of the
+    joint that needs the longest (the others scaled: the direction kept), reached after
+    ``max_j |qdot_j| / (a_j h)`` set-points (closed form), the set-point the tick returned
+    being the one streamed at the tick's end. "never": one set-point per tick, ``q + qdot
+    dt`` (the velocity at once); the arm's limiter is switched to match each time."""
+    from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+
+    rb = default_robot()
+    q0 = np.array(rb.arm.home, float)
+    qdot = np.array([0.6, -0.3, 0.2, 0.5, 0.0, -0.4])
+    for mode in ("always", "never"):
+        cfg = GraspConfig(stream_accel_limit=mode)
+        g = TrackingGrasp(None, rb, cfg)
+        clock = [0.0]
+        arm = _RecordingArm(clock)
+        arm.stream_acceleration_limited = mode == "never"  # the grasp sets it
+
+        def tick(duration, clock=clock):
+            clock[0] += duration
+
+        g._clock = lambda clock=clock: clock[0]
+        g._set_limited(arm, cfg.stream_accel_limit != "never")
+        assert arm.stream_acceleration_limited == (mode == "always")
+        wait = g._streaming(arm, tick)
+        g._start_stream(q0)
+        for _ in range(6):  # 0.3 s at 20 Hz
+            q_end = g._send(arm, qdot, 0.05)
+            wait(0.05)
+            np.testing.assert_allclose(arm.sent[-1][1], q_end, atol=1e-12)
+        t = np.array([s[0] for s in arm.sent])
+        q = np.array([q0] + [s[1] for s in arm.sent])
+        if mode == "never":
+            assert len(arm.sent) == 6
+            np.testing.assert_allclose(np.diff(q, axis=0), np.tile(qdot * 0.05, (6, 1)))
+            continue
+        h = 1.0 / cfg.servo_rate_hz
+        np.testing.assert_allclose(np.diff(t), h)
+        v = np.diff(q, axis=0) / h
+        a_lim = np.asarray(rb.arm.qdd_max) * cfg.joint_accel_fraction
+        assert np.all(np.abs(np.diff(v, axis=0)) / h <= a_lim * (1 + 1e-9))
+        n = int(np.ceil(np.max(np.abs(qdot) / (a_lim * h)) - 1e-9))
+        np.testing.assert_allclose(v[n - 1 :], np.tile(qdot, (len(v) - n + 1, 1)), atol=1e-12)
+        assert not np.allclose(v[n - 2], qdot)
+        ratio = v[: n - 1] / np.where(qdot == 0, 1, qdot)  # every joint the same fraction
+        np.testing.assert_allclose(ratio[:, qdot != 0], ratio[:, [0]] * np.ones((1, 5)))
+
+
+def test_a_moving_object_is_told_from_its_measurements_line():
+    """``_fast``: 1 s of measurements at 20 Hz moving at 0.1 m/s: moving; jittering 1 cm
+    around a point, or too short a history: not (the stream stays acceleration-limited);
+    over 0.5 s, 0.07 m/s (a still object's measurements shifting as the camera comes
+    closer): not, 0.2 m/s: moving."""
+    from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+
+    g = TrackingGrasp(None, default_robot(), GraspConfig())
+    rng = np.random.default_rng(3)
+    c = np.array([0.5, 0.0, -0.02])
+    v = np.array([0.1, 0.0, 0.0])
+    moving = [(0.05 * k, c + v * 0.05 * k + rng.normal(0, 0.005, 3)) for k in range(21)]
+    still = [(0.05 * k, c + rng.normal(0, 0.01, 3) * [1, 1, 0.2]) for k in range(21)]
+    assert g._fast(moving) and not g._fast(still) and not g._fast(moving[-5:])
+    # half the window: twice the speed needed (a still object's first measurements shift)
+    shift = [(0.05 * k, c + np.array([0.0, 0.07, 0.0]) * 0.05 * k) for k in range(11)]
+    fast = [(0.05 * k, c + np.array([0.0, 0.2, 0.0]) * 0.05 * k) for k in range(11)]
+    assert not g._fast(shift) and g._fast(fast)

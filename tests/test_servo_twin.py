@@ -108,10 +108,11 @@ def _ball_under_the_look_view(world, height: float):
     return rb
 
 
-def _descent_after_unseen_turn(world, updates: bool):
+def _descent_after_unseen_turn(world, updates: bool, abort: float = 0.0):
     """The ball lies still but the predictor believes it moves at 0.2 m/s along arm_base y
-    (a turn it has not seen yet); runs the descent and returns the predictor after it and
-    the number of detections it took during the descent."""
+    (a turn it has not seen yet); runs the descent (acceleration-limited, stopping on an
+    innovation above ``abort`` m, 0: never) and returns the predictor after it, the number
+    of detections it took during the descent and the grasper."""
     from mmpa.experiments.grasp import SERVO_RESOLUTION
     from mmpa.servo.predictor import ConstantVelocityKF
 
@@ -123,9 +124,13 @@ def _descent_after_unseen_turn(world, updates: bool):
             super().update(z)
 
     rb = _ball_under_the_look_view(world, 0.25)
-    g = TrackingGrasp(
-        OracleDetector(world), rb, GraspConfig(descend_updates=updates, descend_speed=0.4)
+    cfg = GraspConfig(
+        descend_updates=updates,
+        descend_speed=0.4,
+        stream_accel_limit="always",
+        descend_abort_innovation=abort,
     )
+    g = TrackingGrasp(OracleDetector(world), rb, cfg)
     world.camera.set_resolution(*SERVO_RESOLUTION)
     try:
         q = world.arm.joint_positions()
@@ -141,7 +146,7 @@ def _descent_after_unseen_turn(world, updates: bool):
         )  # fmt: skip
     finally:
         world.camera.set_resolution(640, 480)
-    return kf, CountingKF.updates
+    return kf, CountingKF.updates, g
 
 
 def test_descent_detections_see_the_object_stopped(world):
@@ -149,11 +154,22 @@ def test_descent_detections_see_the_object_stopped(world):
     velocity is corrected (the ball does not move along y), where the blind descent keeps
     it. (Along the camera's offset the located point drifts as the camera closes in: x and
     z velocities pick that up, a known cost; the tracking experiment measures the net.)"""
-    kf_blind, n_blind = _descent_after_unseen_turn(world, updates=False)
-    kf_seen, n_seen = _descent_after_unseen_turn(world, updates=True)
+    kf_blind, n_blind, _ = _descent_after_unseen_turn(world, updates=False)
+    kf_seen, n_seen, _ = _descent_after_unseen_turn(world, updates=True)
     assert n_blind == 0 and n_seen >= 2
     assert kf_blind.velocity()[1] == pytest.approx(0.2)
     assert abs(kf_seen.velocity()[1]) < 0.08, kf_seen.velocity()
+
+
+def test_an_acceleration_limited_descent_stops_on_a_turn(world):
+    """``descend_abort_innovation``: the first detection on the way down lies off the stale
+    prediction by more than 5 mm (the ball stands still, the predictor believes 0.2 m/s):
+    the descent stops there, the TCP still over 10 cm above the ball (truth), for the
+    tracking to go on."""
+    _, n, g = _descent_after_unseen_turn(world, updates=True, abort=0.005)
+    assert g.aborted and 1 <= n <= 3  # within the first detections
+    gap = world.truth.T_map_tcp()[2, 3] - world.truth.T_map_object("tennis_ball")[2, 3]
+    assert gap > 0.1, gap
 
 
 def test_a_grasp_cell_run_alone_repeats_its_trials_in_the_full_table(tmp_path):
@@ -432,3 +448,67 @@ def test_the_operator_takes_the_object_again_after_a_miss(world):
     world.step(0.3)
     op.resume()
     assert moved(0.2) < 0.002
+
+
+def test_grasp_streams_within_the_joint_velocity_and_acceleration_limits(world, monkeypatch):
+    """Issue 22: the set-points the physics applies (``d.ctrl`` of the arm's actuators,
+    every 2 ms step) stay within qd_max and qdd_max through the whole trial, the grasp
+    controller's own command stream keeps them too (``check_path`` on its segments, each
+    command at its time), and the grasp still holds the ball (physics) with the gripper
+    closed within 1 cm of its true center. The default ``stream_accel_limit`` ("still")
+    keeps the arm's stream acceleration-limited for a still object."""
+    import mujoco
+
+    from mmpa.robot.limits import check_path
+
+    arm = world.arm
+    lim = arm.limits
+    assert np.array_equal(arm.stream_limits.qdd_max, lim.qdd_max)  # the stream keeps them
+    steps: list[tuple[float, np.ndarray]] = []
+    real_step = mujoco.mj_step
+
+    def recording_step(m, d):
+        steps.append((float(d.time), d.ctrl[world._arm_act].copy()))
+        real_step(m, d)
+
+    sent: list[list[tuple[float, np.ndarray]]] = [[]]
+    real_command, real_move = arm.command, arm.move_joints
+
+    def command(q):
+        sent[-1].append((world.time, np.array(q, float)))
+        real_command(q)
+
+    def move_joints(*a, **k):  # a planned move ends the stream
+        sent.append([])
+        real_move(*a, **k)
+
+    g = make_grasper(Config(weights="oracle"), world)
+    monkeypatch.setattr(mujoco, "mj_step", recording_step)
+    monkeypatch.setattr(arm, "command", command)
+    monkeypatch.setattr(arm, "move_joints", move_joints)
+    row = grasp_trial(world, g, "tennis_ball", "normal", np.random.default_rng(0))
+    monkeypatch.undo()
+    assert g.cfg.stream_accel_limit == "still"  # the default: limited for a still object
+    assert arm.stream_acceleration_limited and g.limited
+    assert row["grasped"], row
+    assert np.hypot(row["close_dx"], row["close_dy"]) < 0.010, row
+    # the applied set-points, over consecutive physics steps
+    dt = world.model.opt.timestep
+    t = np.array([s[0] for s in steps])
+    q = np.array([s[1] for s in steps])
+    assert np.allclose(np.diff(t), dt)  # one run of physics, no reset inside
+    v = np.diff(q, axis=0) / dt
+    a = np.diff(v, axis=0) / dt
+    assert np.abs(v).max() > 0.3  # it moved
+    assert np.all(np.abs(v) <= lim.qd_max * (1 + 1e-6)), (np.abs(v) / lim.qd_max).max()
+    assert np.all(np.abs(a) <= lim.qdd_max * (1 + 1e-6)), (np.abs(a) / lim.qdd_max).max()
+    # the controller's streams: each command at its time, split where it paused
+    n_checked = 0
+    for seg in sent:
+        ts = np.array([s[0] for s in seg])
+        cut = np.flatnonzero(np.diff(ts) > 0.1) + 1
+        for part in np.split(np.arange(len(seg)), cut):
+            if len(part) > 2:
+                check_path(ts[part], np.array([seg[i][1] for i in part]), lim, "command stream")
+                n_checked += len(part)
+    assert n_checked > 50

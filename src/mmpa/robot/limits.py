@@ -25,9 +25,11 @@ __all__ = [
     "JointLimits",
     "check_path",
     "check_positions",
+    "limit_acceleration",
     "limit_setpoint",
     "path_accelerations",
     "path_velocities",
+    "synchronized_limits",
 ]
 
 
@@ -161,3 +163,37 @@ def limit_setpoint(
     q_new = np.where(land, target, q + v_new * dt)
     v_new = np.where(land, v_land, v_new)
     return q_new, v_new
+
+
+def limit_acceleration(v: Array, v_des: Array, dt: float, limits: JointLimits) -> Array:
+    """The joint velocity (6,) rad/s one period ``dt`` s after ``v`` (6,) on the way to the
+    wanted velocity ``v_des`` (6,): ``v + s (v_des - v)`` with the largest ``s`` in [0, 1]
+    that keeps every joint's change within ``qdd_max dt`` (the change keeps its direction:
+    the tool's motion turns, it is not skewed joint by joint), then scaled into ``qd_max``
+    as a whole. A stream ``q_{k+1} = q_k + v_{k+1} dt`` of such velocities keeps
+    :func:`path_accelerations` within ``qdd_max`` and :func:`path_velocities` within
+    ``qd_max``. Raises :class:`InvalidInputError` for a non-positive or non-finite ``dt``."""
+    if not (np.isfinite(dt) and dt > 0):
+        raise InvalidInputError(f"dt must be a positive finite period, got {dt}")
+    v = np.asarray(v, dtype=float)
+    dv = np.asarray(v_des, dtype=float) - v
+    room = limits.qdd_max * dt
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.min(np.where(np.abs(dv) > room, room / np.abs(dv), 1.0))
+    v_new = v + s * dv
+    over = np.max(np.abs(v_new) / limits.qd_max)
+    return v_new / over if over > 1.0 else v_new
+
+
+def synchronized_limits(q_from: Array, q_to: Array, limits: JointLimits) -> JointLimits:
+    """Limits for a rest-to-rest move from ``q_from`` to ``q_to`` (both (6,) rad) through
+    :func:`limit_setpoint` along the joint-space straight line: each joint's ``qd_max`` and
+    ``qdd_max`` become ``beta d_j`` and ``alpha d_j`` (``d_j = |q_to_j - q_from_j|``, at
+    least 1e-9 rad), ``beta``, ``alpha`` the largest keeping every joint within
+    ``limits``. The limiter's per-joint motion then scales with ``d_j``: every joint covers
+    the same fraction of its way at every period (and all arrive together), at the speed
+    and acceleration of the slowest joint."""
+    d = np.maximum(np.abs(np.asarray(q_to, float) - np.asarray(q_from, float)), 1e-9)
+    beta = float(np.min(limits.qd_max / d))
+    alpha = float(np.min(limits.qdd_max / d))
+    return JointLimits(limits.q_min, limits.q_max, beta * d, alpha * d, limits.tolerance)

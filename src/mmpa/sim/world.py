@@ -508,8 +508,10 @@ class SimWorld:
             elif self._stream is not None:
                 # first-order hold: the target moves on at the command velocity for up to
                 # one command period after the command (a steady stream is a ramp)
+                # (the target still moves at the end of the hold's last step: a stream whose
+                # next command comes then does not brake for a step, every period)
                 ahead = min(d.time + dt - self._stream_t, self._stream_hold)
-                moving = d.time + dt - self._stream_t < self._stream_hold
+                moving = d.time + dt - self._stream_t < self._stream_hold + 0.5 * dt
                 d.ctrl[self._arm_act], self._stream_v = limit_setpoint(
                     d.ctrl[self._arm_act],
                     self._stream_v,
@@ -577,7 +579,8 @@ class SimArm:
     velocity, acceleration and jerk limits; ``follow`` refuses a path that breaks the position,
     velocity or acceleration limits before anything moves, and first approaches the path's
     start along a jerk-limited move when the arm is more than ``approach_tolerance`` rad away;
-    ``command`` streams through a velocity-limited set-point (``stream_limits``).
+    ``command`` streams through a set-point limited in velocity and acceleration
+    (``stream_limits``; in velocity only with ``stream_acceleration_limited`` off).
     """
 
     #: rad: a path starting farther than this from the set-point gets an approach move first
@@ -592,12 +595,26 @@ class SimArm:
         )
         #: the limits every motion of this arm is checked against (mmpa.robot.limits)
         self.limits = JointLimits.from_description(a)
-        #: the limits of streamed set-points (``command``): the joint velocity limits; the
-        #: stream's acceleration is bounded by the joint torques (the actuators' force
-        #: ranges), as on a UR, whose acceleration limits are planning values (MoveIt's
-        #: joint_limits.yaml), not controller limits. ``self.limits`` limits it to
-        #: ``qdd_max`` too (the grasp controller then lags its set-points: see the note)
-        self.stream_limits = dataclasses.replace(self.limits, qdd_max=np.full(6, np.inf))
+        #: the limits of streamed set-points (``command``): the joint velocity and
+        #: acceleration limits (issue 22: a real controller's servo stream refuses, or
+        #: protective-stops on, a stream past them), or the velocity limits only
+        #: (``stream_acceleration_limited`` False: the acceleration bounded by the joint
+        #: torques, the actuators' force ranges, as on a UR, whose acceleration limits are
+        #: planning values, MoveIt's joint_limits.yaml, not servo limits)
+        self.stream_limits = self.limits
+
+    @property
+    def stream_acceleration_limited(self) -> bool:
+        """True (the default): ``command`` keeps the set-points within ``qdd_max`` too
+        (``stream_limits`` = ``limits``); False: within ``qd_max`` only. The tracking grasp
+        sets it from its config (``GraspConfig.stream_accel_limit``)."""
+        return bool(np.all(np.isfinite(self.stream_limits.qdd_max)))
+
+    @stream_acceleration_limited.setter
+    def stream_acceleration_limited(self, on: bool) -> None:
+        self.stream_limits = (
+            self.limits if on else dataclasses.replace(self.limits, qdd_max=np.full(6, np.inf))
+        )
 
     def joint_positions(self) -> Array:
         """Encoder readings (rad), shape (6,)."""
@@ -621,7 +638,9 @@ class SimArm:
         otg = Ruckig(6)
         inp = InputParameter(6)
         inp.current_position = self._w.data.ctrl[self._w._arm_act].tolist()
-        inp.current_velocity = [0.0] * 6
+        # from a stream: on from the streamed set-point's velocity (no jump in velocity)
+        w = self._w
+        inp.current_velocity = (w._stream_v if w._stream is not None else np.zeros(6)).tolist()
         inp.current_acceleration = [0.0] * 6
         inp.target_position = q_target.tolist()
         inp.max_velocity = self._vmax.tolist()
@@ -651,7 +670,11 @@ class SimArm:
         def sample_noisy(t: float) -> Array:
             return np.asarray(sample(t)) + noise * min(t / T, 1.0) if T > 0 else q_final  # type: ignore[operator]
 
-        w._motion = _ArmMotion(float(w.data.time), T, sample_noisy)
+        # from a moving stream the set-point goes on at once (the first physics step
+        # samples the plan one step in), not held for a step
+        moving = w._stream is not None and np.any(w._stream_v != 0)
+        t0 = float(w.data.time) - (float(w.model.opt.timestep) if moving else 0.0)
+        w._motion = _ArmMotion(t0, T, sample_noisy)
         w._stream = None
         w.step(T + settle)
 
@@ -660,8 +683,9 @@ class SimArm:
         command, as URScript ``servoj``); cancels any trajectory. Targets outside the joint
         position limits are refused; the set-point moves toward the target within
         ``stream_limits`` (:func:`mmpa.robot.limits.limit_setpoint`, run every physics step),
-        so no stream of commands can drive a joint past its velocity limit. Step the world
-        to let the arm move."""
+        so no stream of commands can drive a joint past its velocity or acceleration limit
+        (velocity only with ``stream_acceleration_limited`` off). Step the world to let the
+        arm move."""
         q = self._check(q)
         w = self._w
         now = float(w.data.time)
