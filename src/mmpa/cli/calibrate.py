@@ -23,6 +23,18 @@ calibrate_app = typer.Typer(
 _PROFILES = ("ideal", "reference", "realistic", "harsh")
 
 
+def _choice(what: str, value: str, allowed: tuple[str, ...]) -> None:
+    """A usage error (exit 2) naming ``value`` unless it is one of ``allowed``."""
+    if value not in allowed:
+        raise typer.BadParameter(f"unknown {what} {value!r}; one of {list(allowed)}")
+
+
+def _twin_env() -> None:
+    """Off-screen rendering for the twin (unless the user chose a backend)."""
+    os.environ.setdefault("MUJOCO_GL", "osmesa")
+    os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+
 @calibrate_app.command("hand-eye")
 def hand_eye_cmd(
     out: Annotated[Path, typer.Option(help="output folder (summary.json, hand_eye.yaml)")],
@@ -46,12 +58,9 @@ def hand_eye_cmd(
     board in front of SITE, STATIONS planned views, cv2.calibrateHandEye with all five
     methods (the one with the smallest residuals picked), then the joint kinematic +
     hand-eye calibration from it; both compared with the TRUE hand-eye, METHOD's written."""
-    if profile not in _PROFILES:
-        raise typer.BadParameter(f"unknown profile {profile!r}; one of {list(_PROFILES)}")
-    if method not in ("joint", "opencv"):
-        raise typer.BadParameter(f"unknown method {method!r}; one of ['joint', 'opencv']")
-    os.environ.setdefault("MUJOCO_GL", "osmesa")
-    os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+    _choice("profile", profile, _PROFILES)
+    _choice("method", method, ("joint", "opencv"))
+    _twin_env()
     try:
         from mmpa.experiments.calibrate import HandEyeConfig, run_hand_eye
 
@@ -90,10 +99,8 @@ def lidar_mount_cmd(
     """Calibrate the lidar mount translation in the twin: one turn on the spot, every scan
     matched against the map, a circle fit; compared with the TRUE mount; robot.yaml for
     --robot."""
-    if profile not in _PROFILES:
-        raise typer.BadParameter(f"unknown profile {profile!r}; one of {list(_PROFILES)}")
-    os.environ.setdefault("MUJOCO_GL", "osmesa")
-    os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+    _choice("profile", profile, _PROFILES)
+    _twin_env()
     try:
         from mmpa.experiments.calibrate import run_lidar_mount
 
@@ -155,17 +162,13 @@ def reflectors_cmd(
     scanner's range bias), optionally refine the poses and reflectors jointly; placed by
     the poses or (ANCHOR reflector-map) onto the site's existing reflector map; compared
     with the TRUE reflector positions; writes reflectors.yaml and robot.yaml."""
-    if profile not in _PROFILES:
-        raise typer.BadParameter(f"unknown profile {profile!r}; one of {list(_PROFILES)}")
-    if method not in ("hector", "amcl"):
-        raise typer.BadParameter(f"unknown laser-only localizer {method!r}; hector or amcl")
-    if anchor not in ("poses", "reflector-map"):
-        raise typer.BadParameter(f"unknown anchor {anchor!r}; poses or reflector-map")
+    _choice("profile", profile, _PROFILES)
+    _choice("laser-only localizer", method, ("hector", "amcl"))
+    _choice("anchor", anchor, ("poses", "reflector-map"))
     stops = tuple(s.strip() for s in route.split(",") if s.strip())
     if not stops:
         raise typer.BadParameter("--route needs at least one site")
-    os.environ.setdefault("MUJOCO_GL", "osmesa")
-    os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+    _twin_env()
     try:
         from mmpa.experiments.calibrate import ReflectorSurveyConfig, run_reflector_survey
 

@@ -504,6 +504,20 @@ def _refine_projective(
     kernel_now = cfg.photometric_kernel
     xs_f, ys_f = np.nan_to_num(xs), np.nan_to_num(ys)
 
+    def chain(J: Array, Q: Array, g: Array, Pc: Array, src: Array) -> None:
+        """Fill the pose, scale and disparity columns of ``J`` (M, >= n_all) for residuals
+        whose gradient with respect to the moved point ``Q`` (M, 3) is ``g`` (M, 3): the
+        left twist ``[g, Q x g]``; ``log s``: ``g . (Q - t)`` (``s R p = Q - t``); the
+        disparity: ``dQ/d(dd) = -s R p(dd) p_z(dd) / (f b)`` times its regressors (module
+        docstring). ``src`` indexes the rows' points in ``Pc``."""
+        J[:, :3] = g
+        J[:, 3:6] = np.cross(Q, g)
+        j_s = np.einsum("ij,ij->i", Q - t, g)
+        if cfg.estimate_scale:
+            J[:, 6] = j_s
+        if n_disp:
+            J[:, n_par:n_all] = (-(Pc[src, 2] / fb) * j_s)[:, None] * Xd[src]
+
     def photometric(
         Pc: Array, act: Array, cg: Array, img: Array
     ) -> tuple[Array, Array, Array] | None:
@@ -530,13 +544,7 @@ def _refine_projective(
         gx, gy = s_[:, 1] * fx / zi, s_[:, 2] * fy / zi
         gq = np.column_stack([gx, gy, -(gx * Qi[:, 0] + gy * Qi[:, 1]) / zi])
         J = np.zeros((len(idx), n_all + 4))
-        J[:, :3] = gq
-        J[:, 3:6] = np.cross(Qi, gq)
-        j_s = np.einsum("ij,ij->i", Qi - t, gq)
-        if cfg.estimate_scale:
-            J[:, 6] = j_s
-        if n_disp:
-            J[:, n_par:n_all] = (-(Pc[src, 2] / fb) * j_s)[:, None] * Xd[src]
+        chain(J, Qi, gq, Pc, src)
         J[:, n_all:] = -np.column_stack([c, np.ones(len(idx)), x_, y_])
         assert cfg.photometric_sigma is not None
         return r, J, robust_weights(r, cfg.photometric_sigma, kernel_now)
@@ -556,15 +564,7 @@ def _refine_projective(
                 break
             w = robust_weights(r, cfg.huber, kernel_now if ph is not None else cfg.kernel)
             J = np.zeros((len(r), n_x))
-            J[:, :3] = n
-            J[:, 3:6] = np.cross(Q, n)
-            # d/d(log s) of s R p + t at the current estimate: s R p = Q - t
-            j_s = np.einsum("ij,ij->i", Q - t, n)
-            if cfg.estimate_scale:
-                J[:, 6] = j_s
-            if n_disp:
-                # dQ/d(dd) = -s R p(dd) p_z(dd) / (f b) (module docstring)
-                J[:, n_par:n_all] = (-(Pc[src, 2] / fb) * j_s)[:, None] * Xd[src]
+            chain(J, Q, n, Pc, src)
             Jw = J * w[:, None]
             A = Jw.T @ J
             b = -Jw.T @ r
