@@ -183,16 +183,17 @@ def test_scenes_ablation_refuses_the_pure_color_plane(tmp_path):
 
 @pytest.mark.slow
 def test_ipe_and_path_targets_at_every_site(tmp_path):
-    """Issue 3 targets on a small sample: IPE success 1.0, mean E_t <= 2 mm, E_R <= 0.005;
-    needle tip mean <= 0.5 mm and max <= 1.5 mm, TMMA tens of mm."""
+    """Issue 18 goals under realistic on a small sample: IPE success 1.0, mean E_t <= 1 mm,
+    E_R <= 0.003; needle tip mean <= 0.5 mm and max <= 1.5 mm, TMMA tens of mm (measured:
+    E_t 0.55/0.44/0.51 mm, E_R 0.0009/0.0007/0.0007, tip max 0.39 mm)."""
     from mmpa.experiments.runner import run_experiment
 
     out = run_experiment("path-accuracy", tmp_path, trials=5, overrides=["paper_method=false"])
     for site in ("1", "2", "2'"):
         r = [x for x in out.rows if x["site"] == site and x["method"] == "mmpa"]
         assert all(x["ipe_ok"] for x in r), [x["reason"] for x in r]
-        assert np.mean([x["E_t"] for x in r]) <= 2e-3
-        assert np.mean([x["E_R"] for x in r]) <= 0.005
+        assert np.mean([x["E_t"] for x in r]) <= 1e-3
+        assert np.mean([x["E_R"] for x in r]) <= 0.003
         tips = [x["mmpa_mm"] for x in r if x["plan_ok"]]
         assert np.mean(tips) <= 0.5 and np.max(tips) <= 1.5
         assert np.mean([x["tmma_mm"] for x in r]) >= 20.0
