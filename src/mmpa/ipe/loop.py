@@ -167,8 +167,9 @@ class IPEResult:
     iterations: list[IPEIteration] = field(default_factory=list)
     seconds_prepare: float = 0.0
     final: Registration | None = None  # the 4 mm fallback refinement (when it ran)
-    projective: ProjectiveResult | None = None  # the full-resolution refinement (when on)
-    seconds_final: float = 0.0
+    # the full-resolution refinement of the converged view (depth + colour when on)
+    projective: ProjectiveResult | None = None
+    seconds_final: float = 0.0  # the converged view's photometric / 4 mm refinement
 
     @property
     def n_iterations(self) -> int:
@@ -371,6 +372,7 @@ class IPE:
                 return result
             if converged(dT_C, cfg.alpha):
                 result.ok = True
+                t5 = time.perf_counter()
                 if pr is not None and pr.ok and isinstance(taught, PointCloud):
                     # beyond the paper: the converged view once more with its colour image
                     # (depth + photometric); the depth alone cannot tell a rotation about the
@@ -381,7 +383,6 @@ class IPE:
                         result.dT_B = delta_T_B(T_Bk_Ck, pc.T, T_Bo_Co)
                 result.projective = pr  # dT_B above already comes from it when ok
                 if isinstance(taught, PointCloud):
-                    t5 = time.perf_counter()
                     if (pr is None or not pr.ok) and cfg.final is not None:
                         fin = register(prepared(taught, cfg.final), cloud, cfg.final, init=reg.T)
                         result.final = fin
@@ -429,7 +430,7 @@ def _photometric(
         frame.depth,
         frame.intrinsics,
         pr.T,
-        pcfg,
+        pcfg.model_copy(update={"photometric_depth_pass": False}),  # pr is that pass
         disparity_fb=cam.depth_focal_native * cam.baseline,
         source_colors=np.asarray(taught.colors)[keep],
         target_color=frame.color,

@@ -181,7 +181,10 @@ class ProjectiveConfig(BaseModel):
     # the joint pass runs on images blurred by these Gaussian SDs (px), coarse to fine
     photometric_blur_px: tuple[float, ...] = (2.0, 1.0, 0.0)
     # source points of the joint pass (a uniform subset of the ``max_points``)
-    photometric_points: int = Field(default=6000, ge=100)
+    photometric_points: int = Field(default=4000, ge=100)
+    # the depth-only pass before the joint one; False when ``init`` already is a depth-only
+    # refinement's answer (IPE's converged view: the pass would find it again)
+    photometric_depth_pass: bool = True
 
 
 @dataclass(frozen=True)
@@ -627,7 +630,7 @@ def _refine_projective(
         return f
 
     act = np.arange(len(P))
-    k = solve_round(act)
+    k = 0 if photo is not None and not cfg.photometric_depth_pass else solve_round(act)
     if photo is not None and src_grey is not None and grey_all is not None:
         # beyond the depth: the colour image pins what the depth cannot tell from a drift of
         # the disparity (a rotation about the scene; module docstring, "Photometric")
