@@ -139,7 +139,8 @@ class RealSenseCamera:
         dprof = streams["stream.depth"][1].as_video_stream_profile()
         if not _aligned(dprof, cprof):
             return self._start_pipeline(path)
-        device.as_playback().set_real_time(self.cfg.real_time)
+        playback = device.as_playback()
+        playback.set_real_time(self.cfg.real_time)
         self._queues = {}
         for kind in ("stream.depth", "stream.color"):
             sensor, prof = streams[kind]
@@ -148,6 +149,11 @@ class RealSenseCamera:
             sensor.start(queue)
             self._sensors.append(sensor)
             self._queues[kind] = queue
+            if kind == "stream.depth":
+                # the playback starts with the first sensor: hold it until both listen, or
+                # the first colour frame may be read before its queue exists (and lost)
+                playback.pause()
+        playback.resume()
         return device, cprof, dprof
 
     @property
