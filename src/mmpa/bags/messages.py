@@ -257,19 +257,24 @@ def from_odometry(msg: Any) -> Odometry:
     )
 
 
-def rgb_image(frame: RGBDFrame, frame_id: str = FRAMES["camera"]) -> Any:
-    """``sensor_msgs/Image`` ``rgb8`` of the colour image."""
-    c = np.ascontiguousarray(frame.color, dtype=np.uint8)
-    h, w = c.shape[:2]
+def _image(stamp: float, frame_id: str, encoding: str, pixels: np.ndarray) -> Any:
+    """``sensor_msgs/Image`` of ``pixels`` (H, W[, C]), little-endian, rows packed."""
+    px = np.ascontiguousarray(pixels)
+    h, w = px.shape[:2]
     return T("sensor_msgs/msg/Image")(
-        header=_header(frame.stamp, frame_id),
+        header=_header(stamp, frame_id),
         height=h,
         width=w,
-        encoding="rgb8",
+        encoding=encoding,
         is_bigendian=0,
-        step=3 * w,
-        data=c.reshape(-1),
+        step=px.strides[0],
+        data=px.reshape(-1).view(np.uint8),
     )
+
+
+def rgb_image(frame: RGBDFrame, frame_id: str = FRAMES["camera"]) -> Any:
+    """``sensor_msgs/Image`` ``rgb8`` of the colour image."""
+    return _image(frame.stamp, frame_id, "rgb8", np.asarray(frame.color, dtype=np.uint8))
 
 
 def depth_image(frame: RGBDFrame, frame_id: str = FRAMES["camera"]) -> Any:
@@ -277,17 +282,7 @@ def depth_image(frame: RGBDFrame, frame_id: str = FRAMES["camera"]) -> Any:
     aligned to colour, so it shares the colour optical frame."""
     d = np.asarray(frame.depth, dtype=np.float64)
     mm = np.where(np.isfinite(d) & (d > 0), np.rint(d * 1000.0), 0.0)
-    mm = np.clip(mm, 0, 65535).astype("<u2")
-    h, w = mm.shape
-    return T("sensor_msgs/msg/Image")(
-        header=_header(frame.stamp, frame_id),
-        height=h,
-        width=w,
-        encoding="16UC1",
-        is_bigendian=0,
-        step=2 * w,
-        data=np.frombuffer(mm.tobytes(), dtype=np.uint8),
-    )
+    return _image(frame.stamp, frame_id, "16UC1", np.clip(mm, 0, 65535).astype("<u2"))
 
 
 def from_image_rgb(msg: Any) -> np.ndarray:

@@ -270,7 +270,7 @@ class IPE:
             except UnreachableError:
                 prior = None  # the taught joints, as in the paper
         retreated = False
-        src_points: Array | None = None
+        src: tuple[Array, Array | None] | None = None  # taught points, colours in the crop
         for k in range(1, cfg.beta + 1):
             if progress:
                 progress(f"IPE iteration {k}", (k - 1) / cfg.beta)
@@ -310,11 +310,11 @@ class IPE:
             pr = None
             dT_C = reg.T
             if reg.ok and cfg.projective is not None and isinstance(taught, PointCloud):
-                if src_points is None:  # cropped once per run
-                    src_points = _source_points(taught, cfg)
+                if src is None:  # cropped once per run
+                    src = _source(taught, cfg)
                 cam = self.robot.camera
                 pr = refine_projective(
-                    src_points,
+                    src[0],
                     frame.depth,
                     frame.intrinsics,
                     reg.T,
@@ -373,11 +373,11 @@ class IPE:
             if converged(dT_C, cfg.alpha):
                 result.ok = True
                 t5 = time.perf_counter()
-                if pr is not None and pr.ok and isinstance(taught, PointCloud):
+                if pr is not None and pr.ok and src is not None:
                     # beyond the paper: the converged view once more with its colour image
                     # (depth + photometric); the depth alone cannot tell a rotation about the
                     # scene from a drift of the disparity between the sessions
-                    pc = _photometric(taught, cfg, pr, frame, self.robot)
+                    pc = _photometric(src, cfg, pr, frame, self.robot)
                     if pc is not None:
                         pr = pc
                         result.dT_B = delta_T_B(T_Bk_Ck, pc.T, T_Bo_Co)
@@ -408,7 +408,7 @@ class IPE:
 
 
 def _photometric(
-    taught: PointCloud,
+    src: tuple[Array, Array | None],
     cfg: IPEConfig,
     pr: ProjectiveResult,
     frame: RGBDFrame,
@@ -416,23 +416,22 @@ def _photometric(
 ) -> ProjectiveResult | None:
     """The joint depth + colour refinement of the converged view from the depth-only
     refinement ``pr`` (:func:`refine_projective` with the source colours and the target
-    colour image); None when it is off (``photometric_sigma`` None, a cloud without colours)
-    or refused (the depth-only result then stands)."""
+    colour image); ``src`` the taught points and colours in the depth crop
+    (:func:`_source`). None when it is off (``photometric_sigma`` None, a cloud without
+    colours) or refused (the depth-only result then stands)."""
     pcfg = cfg.projective
-    if pcfg is None or pcfg.photometric_sigma is None or taught.colors is None:
+    points, colors = src
+    if pcfg is None or pcfg.photometric_sigma is None or colors is None:
         return None
-    p = np.asarray(taught.points, float)
-    z = p[:, 2]
-    keep = (z >= cfg.min_depth) & (z <= cfg.max_depth)
     cam = robot.camera
     res = refine_projective(
-        p[keep],
+        points,
         frame.depth,
         frame.intrinsics,
         pr.T,
         pcfg.model_copy(update={"photometric_depth_pass": False}),  # pr is that pass
         disparity_fb=cam.depth_focal_native * cam.baseline,
-        source_colors=np.asarray(taught.colors)[keep],
+        source_colors=colors,
         target_color=frame.color,
     )
     if not res.ok:
@@ -459,11 +458,14 @@ def _depth_scale(pr: ProjectiveResult) -> float:
     return float(pr.stages.get("effective_scale", pr.scale))
 
 
-def _source_points(taught: PointCloud, cfg: IPEConfig) -> Array:
-    """The taught points inside the depth crop (the source of the projective refinement)."""
+def _source(taught: PointCloud, cfg: IPEConfig) -> tuple[Array, Array | None]:
+    """The taught points inside the depth crop (the source of the projective refinement)
+    and their colours (None for a cloud without colours)."""
     p = np.asarray(taught.points, float)
     z = p[:, 2]
-    return p[(z >= cfg.min_depth) & (z <= cfg.max_depth)]
+    keep = (z >= cfg.min_depth) & (z <= cfg.max_depth)
+    colors = None if taught.colors is None else np.asarray(taught.colors)[keep]
+    return p[keep], colors
 
 
 _COLORLESS: list[tuple[PointCloud, PointCloud]] = []
