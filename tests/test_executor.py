@@ -20,7 +20,7 @@ from mmpa.experiments import executor as ex
 def slow_square(x: int, delay: float) -> dict:
     """A job that finishes later the larger ``delay``: the early jobs finish last."""
     time.sleep(delay)
-    return {"x": x, "sq": x * x, "pid": os.getpid()}
+    return {"x": x, "sq": x * x, "pid": os.getpid(), "omp": os.environ.get("OMP_NUM_THREADS")}
 
 
 def failing(x: int) -> int:
@@ -42,7 +42,8 @@ def test_serial_journal_and_order(tmp_path):
     assert all(r["worker_rss_mb"] > 10 and r["trial_s"] >= 0 for r in recs)
 
 
-def test_process_executor_returns_job_order_from_other_processes(tmp_path):
+def test_process_executor_returns_job_order_from_other_processes(tmp_path, monkeypatch):
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     order = []
     with ex.ProcessExecutor(2, tmp_path) as e:
         recs = e.run(_jobs(4), lambda done, total, rec: order.append(rec["key"]["trial"]))
@@ -50,6 +51,18 @@ def test_process_executor_returns_job_order_from_other_processes(tmp_path):
     assert sorted(order) == [0, 1, 2, 3]
     pids = {r["result"]["pid"] for r in recs}
     assert os.getpid() not in pids and len(pids) == 2
+    # the workers run single-threaded; this process's environment is left as it was
+    assert {r["result"]["omp"] for r in recs} == {"1"}
+    assert "OMP_NUM_THREADS" not in os.environ
+
+
+def test_worker_thread_counts_set_in_the_environment_win(tmp_path, monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert "OMP_NUM_THREADS" not in ex.worker_env()
+    with ex.ProcessExecutor(2, tmp_path) as e:
+        recs = e.run(_jobs(2), lambda *a: None)
+    assert {r["result"]["omp"] for r in recs} == {"3"}
+    assert os.environ["OMP_NUM_THREADS"] == "3"
 
 
 def test_resume_skips_journaled_trials_and_ignores_a_torn_last_line(tmp_path):
