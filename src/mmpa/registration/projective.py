@@ -330,12 +330,15 @@ def _photometric_inputs(
 def _bilinear(img: Array, u: Array, v: Array) -> Array:
     """Bilinear samples of ``img`` (H, W, C) at continuous pixel coordinates (callers keep
     ``0 <= u < W - 1``, ``0 <= v < H - 1``); shape (M, C)."""
+    H, W, C = img.shape
+    flat = img.reshape(H * W, C)
     u0 = np.floor(u).astype(np.intp)
     v0 = np.floor(v).astype(np.intp)
     a = (u - u0)[:, None]
     b = (v - v0)[:, None]
-    return (1 - b) * ((1 - a) * img[v0, u0] + a * img[v0, u0 + 1]) + b * (
-        (1 - a) * img[v0 + 1, u0] + a * img[v0 + 1, u0 + 1]
+    i = v0 * W + u0
+    return (1 - b) * ((1 - a) * flat[i] + a * flat[i + 1]) + b * (
+        (1 - a) * flat[i + W] + a * flat[i + W + 1]
     )
 
 
@@ -351,10 +354,8 @@ def _source_grey_blurred(P: Array, g: Array, intr: CameraIntrinsics, sd: float) 
         v = np.rint(intr.fy * P[:, 1] / P[:, 2] + intr.cy)
     ok = (P[:, 2] > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
     pix = v[ok].astype(np.intp) * W + u[ok].astype(np.intp)
-    S = np.zeros(H * W)
-    M = np.zeros(H * W)
-    np.add.at(S, pix, g[ok])
-    np.add.at(M, pix, 1.0)
+    S = np.bincount(pix, weights=g[ok], minlength=H * W).astype(float)
+    M = np.bincount(pix, minlength=H * W).astype(float)
     Sb = ndimage.gaussian_filter(S.reshape(H, W), sd)
     Mb = ndimage.gaussian_filter(M.reshape(H, W), sd)
     out = g.copy()
@@ -400,8 +401,8 @@ def _refine_projective(
             f"{intrinsics.height}x{intrinsics.width}"
         )
     H, W = z_img.shape
-    # depth image flattened, 0 where invalid; the vertex map V(u, v) = z (x_u, y_v, 1) is
-    # evaluated only at the pixels used (x_u = (u - cx)/fx, y_v = (v - cy)/fy)
+    # depth image flattened, 0 where invalid; the vertex map V(u, v) = z (x_u, y_v, 1)
+    # (x_u = (u - cx)/fx, y_v = (v - cy)/fy)
     zf = np.where(np.isfinite(z_img) & (z_img > 0), z_img, 0.0).ravel()
     rad = cfg.normal_radius
     fx, fy, cx, cy = intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy
@@ -409,20 +410,45 @@ def _refine_projective(
     yv = (np.arange(H) - cy) / fy
     valid = zf > 0
     n_valid = int(np.count_nonzero(valid))
-    fill = np.arange(H * W)  # the pixel each pixel's vertex is read from; -1: none
     if n_valid < cfg.hole_fill_max_valid * H * W and cfg.hole_fill_px > 0:
-        # holes (a sparse or hole-gridded depth image): read the nearest valid pixel
+        # holes (a sparse or hole-gridded depth image): each pixel's vertex is that of the
+        # nearest valid pixel within hole_fill_px (none beyond)
         dist, (iy, ix) = ndimage.distance_transform_cdt(
             ~valid.reshape(H, W), metric="chessboard", return_indices=True
         )
         fill = np.where(dist.ravel() <= cfg.hole_fill_px, (iy * W + ix).ravel(), -1)
-    fill_z = np.where(fill >= 0, zf[np.maximum(fill, 0)], 0.0)
-    fill_x = fill_z * xu[np.maximum(fill, 0) % W]
-    fill_y = fill_z * yv[np.maximum(fill, 0) // W]
+        fill_z = np.where(fill >= 0, zf[np.maximum(fill, 0)], 0.0)
+        X = (fill_z * xu[np.maximum(fill, 0) % W]).reshape(H, W)
+        Y = (fill_z * yv[np.maximum(fill, 0) // W]).reshape(H, W)
+    else:
+        fill_z = zf
+        X, Y = zf.reshape(H, W) * xu[None, :], zf.reshape(H, W) * yv[:, None]
 
-    def vertex(pix: Array) -> tuple[Array, Array, Array]:
-        """``z``, ``x``, ``y`` (m) of the vertex map at the flat pixels ``pix``."""
-        return fill_z[pix], fill_x[pix], fill_y[pix]
+    # the target's vertex q = V(u, v) and unit normal n = dx x dy / |dx x dy| at every pixel,
+    # dx = V(u+r, v) - V(u-r, v), dy = V(u, v+r) - V(u, v-r) (r = normal_radius, each vertex
+    # at the nearest valid pixel within hole_fill_px), packed as rows [q, n] for one gather
+    # per association; tgt_ok: all five vertices valid, the four within max_depth_jump of
+    # the centre, the normal defined (pixels within r of the border: never)
+    Z = fill_z.reshape(H, W)
+    tgt = np.zeros((H, W, 6))
+    tgt_ok = np.zeros((H, W), bool)
+    in_v, in_u = slice(rad, H - rad), slice(rad, W - rad)
+    ctr = (in_v, in_u)
+    lft, rgt = (in_v, slice(0, W - 2 * rad)), (in_v, slice(2 * rad, W))
+    upp, dwn = (slice(0, H - 2 * rad), in_u), (slice(2 * rad, H), in_u)
+    zc = Z[ctr]
+    ok_c = zc > 0
+    for nb in (lft, rgt, upp, dwn):
+        ok_c &= (Z[nb] > 0) & (np.abs(Z[nb] - zc) < cfg.max_depth_jump)
+    ax, ay, az = X[rgt] - X[lft], Y[rgt] - Y[lft], Z[rgt] - Z[lft]
+    bx, by, bz = X[dwn] - X[upp], Y[dwn] - Y[upp], Z[dwn] - Z[upp]
+    nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+    ok_c &= norm > 0
+    norm[~ok_c] = 1.0
+    tgt[ctr] = np.stack([X[ctr], Y[ctr], zc, nx / norm, ny / norm, nz / norm], axis=-1)
+    tgt_ok[ctr] = ok_c
+    tgt, tgt_ok = tgt.reshape(H * W, 6), tgt_ok.ravel()
 
     stages: dict[str, Any] = {
         "maps_s": time.perf_counter() - t0,
@@ -450,21 +476,21 @@ def _refine_projective(
             sd = cfg.disparity_prior_px[0 if j == 0 else 1]
             prior_terms.append((n_par + j, sd, lambda j=j: disp[j]))
 
-    def corrected(disp: Array) -> Array:
-        """The source points moved along their rays by the disparity drift ``disp``."""
+    def corrected(disp: Array, idx: Array | None = None) -> Array:
+        """The source points ``P[idx]`` (None: all) moved along their rays by the disparity
+        drift ``disp``."""
+        Pi = P if idx is None else P[idx]
         if n_disp == 0:
-            return P
-        dd = Xd @ disp
-        return P / (1.0 + P[:, 2] * dd / fb)[:, None]
+            return Pi
+        dd = (Xd if idx is None else Xd[idx]) @ disp
+        return Pi / (1.0 + Pi[:, 2] * dd / fb)[:, None]
 
-    def associate(
-        R: Array, t: Array, log_s: float, Pc: Array, act: Array
-    ) -> tuple[Array, Array, Array, Array]:
-        """Project the moved source points ``Pc[act]`` into the target image; the inlier
-        points ``Q`` (M, 3), the target normals ``n`` (M, 3) (:func:`normal_map`'s central
-        differences, at the associated pixels only), the point-to-plane residuals ``r`` (M,)
-        and the inliers' source indices (M,) into ``Pc``."""
-        Q = np.exp(log_s) * (Pc[act] @ R.T) + t
+    def associate(R: Array, t: Array, log_s: float, Pa: Array) -> tuple[Array, Array, Array, Array]:
+        """Project the moved source points ``Pa`` (the drift-corrected points of the active
+        set, K x 3) into the target image; the inlier points ``Q`` (M, 3), the target
+        normals ``n`` (M, 3) (``tgt``), the point-to-plane residuals ``r`` (M,) and the
+        inliers' rows (M,) in ``Pa``."""
+        Q = np.exp(log_s) * (Pa @ R.T) + t
         z = Q[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             u = np.rint(fx * Q[:, 0] / z + cx)
@@ -473,32 +499,12 @@ def _refine_projective(
         idx = np.flatnonzero(inside)
         ui, vi = u[idx].astype(np.intp), v[idx].astype(np.intp)
         pix = vi * W + ui
-        # q = V(u, v) and its four neighbours at +-rad px, each at the nearest valid pixel
-        # within hole_fill_px (the pixel itself where valid: a dense image is unchanged)
-        (zc, xc, yc), (zl, xl, yl), (zr, xr, yr), (zu, xu_, yu), (zd, xd, yd) = (
-            vertex(pix), vertex(pix - rad), vertex(pix + rad), vertex(pix - rad * W),
-            vertex(pix + rad * W),
-        )  # fmt: skip
-        ok = zc > 0
-        for zj in (zl, zr, zu, zd):
-            ok &= (zj > 0) & (np.abs(zj - zc) < cfg.max_depth_jump)
-        # dx = V(u+r, v) - V(u-r, v), dy = V(u, v+r) - V(u, v-r), n = dx x dy
-        ax, ay, az = xr - xl, yr - yl, zr - zl
-        bx, by, bz = xd - xu_, yd - yu, zd - zu
-        n = np.empty((len(idx), 3))
-        n[:, 0] = ay * bz - az * by
-        n[:, 1] = az * bx - ax * bz
-        n[:, 2] = ax * by - ay * bx
-        norm = np.sqrt(np.einsum("ij,ij->i", n, n))
-        ok &= norm > 0
+        g = tgt[pix]  # q = V(u, v) and the unit normal n there
         Qi = Q[idx]
-        # r = (Q - q) . n / |n| with q = V(u, v) = (xc, yc, zc)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = (
-                (Qi[:, 0] - xc) * n[:, 0] + (Qi[:, 1] - yc) * n[:, 1] + (Qi[:, 2] - zc) * n[:, 2]
-            ) / norm
-        keep = ok & (np.abs(r) < cfg.gate) & (np.abs(Qi[:, 2] - zc) < cfg.depth_gate)
-        return Qi[keep], n[keep] / norm[keep, None], r[keep], act[idx[keep]]
+        d = Qi - g[:, :3]
+        r = d[:, 0] * g[:, 3] + d[:, 1] * g[:, 4] + d[:, 2] * g[:, 5]  # (Q - q) . n
+        keep = tgt_ok[pix] & (np.abs(r) < cfg.gate) & (np.abs(d[:, 2]) < cfg.depth_gate)
+        return Qi[keep], g[keep, 3:], r[keep], idx[keep]
 
     n_all = n_par + n_disp
     # the photometric term's brightness model: target grey = (1 + g) source grey + o
@@ -507,28 +513,30 @@ def _refine_projective(
     kernel_now = cfg.photometric_kernel
     xs_f, ys_f = np.nan_to_num(xs), np.nan_to_num(ys)
 
-    def chain(J: Array, Q: Array, g: Array, Pc: Array, src: Array) -> None:
+    def chain(J: Array, Q: Array, g: Array, pz: Array, xd: Array) -> None:
         """Fill the pose, scale and disparity columns of ``J`` (M, >= n_all) for residuals
         whose gradient with respect to the moved point ``Q`` (M, 3) is ``g`` (M, 3): the
         left twist ``[g, Q x g]``; ``log s``: ``g . (Q - t)`` (``s R p = Q - t``); the
         disparity: ``dQ/d(dd) = -s R p(dd) p_z(dd) / (f b)`` times its regressors (module
-        docstring). ``src`` indexes the rows' points in ``Pc``."""
+        docstring); ``pz`` (M,) the rows' corrected source depths ``p_z(dd)``, ``xd`` (M,
+        n_disp) their disparity regressors."""
         J[:, :3] = g
         J[:, 3:6] = np.cross(Q, g)
         j_s = np.einsum("ij,ij->i", Q - t, g)
         if cfg.estimate_scale:
             J[:, 6] = j_s
         if n_disp:
-            J[:, n_par:n_all] = (-(Pc[src, 2] / fb) * j_s)[:, None] * Xd[src]
+            J[:, n_par:n_all] = (-(pz / fb) * j_s)[:, None] * xd
 
     def photometric(
-        Pc: Array, act: Array, cg: Array, img: Array
+        Pa: Array, act: Array, cg: Array, img: Array
     ) -> tuple[Array, Array, Array] | None:
         """The photometric residuals ``r`` (M,) = target grey at the projection of the moved
         source point - the brightness model of its source grey, their Jacobians (M, n_all + 4)
         and the Huber weights (M,); points projecting outside, onto no depth or onto a depth
-        ``depth_gate`` away (occluded) are left out."""
-        Q = np.exp(log_s) * (Pc[act] @ R.T) + t
+        ``depth_gate`` away (occluded) are left out. ``Pa`` (K, 3): the corrected points
+        ``act`` (K,)."""
+        Q = np.exp(log_s) * (Pa @ R.T) + t
         z = Q[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             u = fx * Q[:, 0] / z + cx
@@ -547,7 +555,7 @@ def _refine_projective(
         gx, gy = s_[:, 1] * fx / zi, s_[:, 2] * fy / zi
         gq = np.column_stack([gx, gy, -(gx * Qi[:, 0] + gy * Qi[:, 1]) / zi])
         J = np.zeros((len(idx), n_all + 4))
-        chain(J, Qi, gq, Pc, src)
+        chain(J, Qi, gq, Pa[idx, 2], Xd[src])
         J[:, n_all:] = -np.column_stack([c, np.ones(len(idx)), x_, y_])
         assert cfg.photometric_sigma is not None
         return r, J, robust_weights(r, cfg.photometric_sigma, kernel_now)
@@ -561,18 +569,18 @@ def _refine_projective(
         k = 0
         while k < (iters or cfg.iterations):
             k += 1
-            Pc = corrected(disp)
-            Q, n, r, src = associate(R, t, log_s, Pc, act)
+            Pa = corrected(disp, act)
+            Q, n, r, rows = associate(R, t, log_s, Pa)
             if len(r) < max(cfg.min_inliers, n_all):
                 break
             w = robust_weights(r, cfg.huber, kernel_now if ph is not None else cfg.kernel)
             J = np.zeros((len(r), n_x))
-            chain(J, Q, n, Pc, src)
+            chain(J, Q, n, Pa[rows, 2], Xd[act[rows]])
             Jw = J * w[:, None]
             A = Jw.T @ J
             b = -Jw.T @ r
             if ph is not None:
-                pr = photometric(Pc, act, *ph)
+                pr = photometric(Pa, act, *ph)
                 if pr is None:
                     break
                 rp, Jp, wp = pr
@@ -612,11 +620,11 @@ def _refine_projective(
         point-to-plane term): robust losses of both terms, a point without a residual
         (unassociated, gated, occluded) counted at the kernel's saturation ``c^2 / 2``
         (``c`` = ``huber``; the redescending kernel's limit), and the priors."""
-        Pc = corrected(disp)
-        _, _, r, _ = associate(R, t, log_s, Pc, act)
+        Pa = corrected(disp, act)
+        _, _, r, _ = associate(R, t, log_s, Pa)
         c = cfg.huber
         f = float(np.sum(rho(r, c, kernel_now))) + 0.5 * c * c * (len(act) - len(r))
-        pr = photometric(Pc, act, *ph)
+        pr = photometric(Pa, act, *ph)
         n_p = 0
         if pr is not None:
             sig = cfg.photometric_sigma
@@ -669,7 +677,7 @@ def _refine_projective(
         stages["photometric_s"] = time.perf_counter() - t_ph
         stages["brightness"] = [float(x) for x in bright]
     Pc = corrected(disp)
-    Q, n, r, _ = associate(R, t, log_s, Pc, act)
+    Q, n, r, _ = associate(R, t, log_s, Pc)
     if n_disp:
         stages["disparity_px"] = [float(x) for x in disp]
     T = np.eye(4)
