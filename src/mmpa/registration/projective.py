@@ -86,6 +86,7 @@ where only texture could fix the pose).
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -342,26 +343,34 @@ def _bilinear(img: Array, u: Array, v: Array) -> Array:
     )
 
 
-def _source_grey_blurred(P: Array, g: Array, intr: CameraIntrinsics, sd: float) -> Array:
-    """The source's grey values blurred like the target image: the points (taken from the
-    source camera's pixel grid) are put back on it, blurred by a Gaussian of SD ``sd`` px by
-    normalized convolution (holes do not darken), and read back at their pixels; (N,)."""
-    if sd <= 0:
-        return g
+def _source_grey_levels(
+    P: Array, g: Array, intr: CameraIntrinsics, sds: Sequence[float], keep: Array
+) -> list[Array]:
+    """The source's grey values ``g`` (N,) blurred like the target image by a Gaussian of
+    each SD in ``sds`` (px; 0: unblurred), at the points ``keep`` (K,) of ``P`` (N, 3): the
+    points (taken from the source camera's pixel grid) are put back on it once, blurred by
+    normalized convolution (holes do not darken), and read back at their pixels; one (K,)
+    array per SD."""
     H, W = intr.height, intr.width
     with np.errstate(divide="ignore", invalid="ignore"):
         u = np.rint(intr.fx * P[:, 0] / P[:, 2] + intr.cx)
         v = np.rint(intr.fy * P[:, 1] / P[:, 2] + intr.cy)
     ok = (P[:, 2] > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
     pix = v[ok].astype(np.intp) * W + u[ok].astype(np.intp)
-    S = np.bincount(pix, weights=g[ok], minlength=H * W).astype(float)
-    M = np.bincount(pix, minlength=H * W).astype(float)
-    Sb = ndimage.gaussian_filter(S.reshape(H, W), sd)
-    Mb = ndimage.gaussian_filter(M.reshape(H, W), sd)
-    out = g.copy()
-    with np.errstate(divide="ignore", invalid="ignore"):
-        blurred = (Sb / Mb).ravel()[pix]
-    out[ok] = np.where(np.isfinite(blurred), blurred, g[ok])
+    S = np.bincount(pix, weights=g[ok], minlength=H * W).astype(float).reshape(H, W)
+    M = np.bincount(pix, minlength=H * W).astype(float).reshape(H, W)
+    ok_k = ok[keep]
+    uk, vk = u[keep][ok_k].astype(np.intp), v[keep][ok_k].astype(np.intp)
+    out = []
+    for sd in sds:
+        gk = g[keep].copy()
+        if sd > 0:
+            Sb = ndimage.gaussian_filter(S, sd)
+            Mb = ndimage.gaussian_filter(M, sd)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                blurred = Sb[vk, uk] / Mb[vk, uk]
+            gk[ok_k] = np.where(np.isfinite(blurred), blurred, gk[ok_k])
+        out.append(gk)
     return out
 
 
@@ -418,37 +427,45 @@ def _refine_projective(
         )
         fill = np.where(dist.ravel() <= cfg.hole_fill_px, (iy * W + ix).ravel(), -1)
         fill_z = np.where(fill >= 0, zf[np.maximum(fill, 0)], 0.0)
-        X = (fill_z * xu[np.maximum(fill, 0) % W]).reshape(H, W)
-        Y = (fill_z * yv[np.maximum(fill, 0) // W]).reshape(H, W)
+        fill_x = fill_z * xu[np.maximum(fill, 0) % W]
+        fill_y = fill_z * yv[np.maximum(fill, 0) // W]
     else:
         fill_z = zf
-        X, Y = zf.reshape(H, W) * xu[None, :], zf.reshape(H, W) * yv[:, None]
+        fill_x = (zf.reshape(H, W) * xu[None, :]).ravel()
+        fill_y = (zf.reshape(H, W) * yv[:, None]).ravel()
 
-    # the target's vertex q = V(u, v) and unit normal n = dx x dy / |dx x dy| at every pixel,
+    # the target's vertex q = V(u, v) and unit normal n = dx x dy / |dx x dy| at a pixel,
     # dx = V(u+r, v) - V(u-r, v), dy = V(u, v+r) - V(u, v-r) (r = normal_radius, each vertex
-    # at the nearest valid pixel within hole_fill_px), packed as rows [q, n] for one gather
-    # per association; tgt_ok: all five vertices valid, the four within max_depth_jump of
-    # the centre, the normal defined (pixels within r of the border: never)
-    Z = fill_z.reshape(H, W)
-    tgt = np.zeros((H, W, 6))
-    tgt_ok = np.zeros((H, W), bool)
-    in_v, in_u = slice(rad, H - rad), slice(rad, W - rad)
-    ctr = (in_v, in_u)
-    lft, rgt = (in_v, slice(0, W - 2 * rad)), (in_v, slice(2 * rad, W))
-    upp, dwn = (slice(0, H - 2 * rad), in_u), (slice(2 * rad, H), in_u)
-    zc = Z[ctr]
-    ok_c = zc > 0
-    for nb in (lft, rgt, upp, dwn):
-        ok_c &= (Z[nb] > 0) & (np.abs(Z[nb] - zc) < cfg.max_depth_jump)
-    ax, ay, az = X[rgt] - X[lft], Y[rgt] - Y[lft], Z[rgt] - Z[lft]
-    bx, by, bz = X[dwn] - X[upp], Y[dwn] - Y[upp], Z[dwn] - Z[upp]
-    nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
-    norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-    ok_c &= norm > 0
-    norm[~ok_c] = 1.0
-    tgt[ctr] = np.stack([X[ctr], Y[ctr], zc, nx / norm, ny / norm, nz / norm], axis=-1)
-    tgt_ok[ctr] = ok_c
-    tgt, tgt_ok = tgt.reshape(H * W, 6), tgt_ok.ravel()
+    # at the nearest valid pixel within hole_fill_px), kept as rows [q, n] of ``tgt`` once
+    # computed (the refinement's iterations hit nearly the same pixels again); tgt_ok: all
+    # five vertices valid, the four within max_depth_jump of the centre, the normal defined
+    tgt = np.empty((H * W, 6))
+    tgt_ok = np.zeros(H * W, bool)
+    have = np.zeros(H * W, bool)
+
+    def target_at(pix: Array) -> tuple[Array, Array]:
+        """``tgt`` rows (M, 6) and ``tgt_ok`` (M,) at the flat pixels ``pix`` (M,), each at
+        least ``r`` px inside the image."""
+        new = pix[~have[pix]]
+        if len(new):
+            zc, xc, yc = fill_z[new], fill_x[new], fill_y[new]
+            ok = zc > 0
+            nb = []
+            for d in (-rad, rad, -rad * W, rad * W):  # left, right, up, down
+                z_, x_, y_ = fill_z[new + d], fill_x[new + d], fill_y[new + d]
+                ok &= (z_ > 0) & (np.abs(z_ - zc) < cfg.max_depth_jump)
+                nb.append((x_, y_, z_))
+            (xl, yl, zl), (xr, yr, zr), (xu_, yu, zu), (xd, yd, zd) = nb
+            ax, ay, az = xr - xl, yr - yl, zr - zl
+            bx, by, bz = xd - xu_, yd - yu, zd - zu
+            nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+            ok &= norm > 0
+            norm[~ok] = 1.0
+            tgt[new] = np.column_stack([xc, yc, zc, nx / norm, ny / norm, nz / norm])
+            tgt_ok[new] = ok
+            have[new] = True
+        return tgt[pix], tgt_ok[pix]
 
     stages: dict[str, Any] = {
         "maps_s": time.perf_counter() - t0,
@@ -499,11 +516,11 @@ def _refine_projective(
         idx = np.flatnonzero(inside)
         ui, vi = u[idx].astype(np.intp), v[idx].astype(np.intp)
         pix = vi * W + ui
-        g = tgt[pix]  # q = V(u, v) and the unit normal n there
+        g, g_ok = target_at(pix)  # q = V(u, v) and the unit normal n there
         Qi = Q[idx]
         d = Qi - g[:, :3]
         r = d[:, 0] * g[:, 3] + d[:, 1] * g[:, 4] + d[:, 2] * g[:, 5]  # (Q - q) . n
-        keep = tgt_ok[pix] & (np.abs(r) < cfg.gate) & (np.abs(d[:, 2]) < cfg.depth_gate)
+        keep = g_ok & (np.abs(r) < cfg.gate) & (np.abs(d[:, 2]) < cfg.depth_gate)
         return Qi[keep], g[keep, 3:], r[keep], idx[keep]
 
     n_all = n_par + n_disp
@@ -645,10 +662,12 @@ def _refine_projective(
         t_ph = time.perf_counter()
         act_ph = act[:: int(np.ceil(len(act) / cfg.photometric_points))]
         levels = []  # (blur SD, photometric data) coarse to fine
-        for sd in cfg.photometric_blur_px:
+        sds = cfg.photometric_blur_px
+        keep = np.arange(0, len(P_all), stride)  # P = P_all[keep]
+        greys = _source_grey_levels(P_all, grey_all, intrinsics, sds, keep)
+        for sd, cg in zip(sds, greys, strict=True):
             img = ndimage.gaussian_filter(photo[1], sd) if sd > 0 else photo[1]
             gv, gu = np.gradient(img)
-            cg = _source_grey_blurred(P_all, grey_all, intrinsics, sd)[::stride]
             levels.append((cg, np.stack([img, gu, gv], axis=-1)))
 
         def run_levels(graduated: bool) -> float:
