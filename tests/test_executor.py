@@ -12,6 +12,7 @@ import pytest
 
 from mmpa.errors import ConfigError, MMPAError
 from mmpa.experiments import executor as ex
+from mmpa.experiments.mmpa_common import TIMING_COLUMNS
 
 # ---------------------------------------------------------------------------------------
 # the executors on toy jobs (no simulator)
@@ -107,7 +108,7 @@ def test_plain_keeps_nan_and_drops_numpy_types():
 
 SIM = {"MUJOCO_GL": "osmesa", "PYOPENGL_PLATFORM": "osmesa"}
 OVERRIDES = ["sites=[1]", "paper_method=false"]
-VARYING = {"trial_s", "worker_rss_mb", "compute_s", "register_s_mean"}  # time and memory
+VARYING = TIMING_COLUMNS  # time and memory
 
 
 def _rows(folder) -> list[dict]:

@@ -531,6 +531,7 @@ def ipe_rows(ipe: IPEResult, truth: Array) -> tuple[dict, list[dict]]:
         "d_p_deg": np.rad2deg(v[4]),
         "d_y_deg": np.rad2deg(v[5]),
         "compute_s": ipe.seconds_compute,
+        "final_s": ipe.seconds_final,
         "register_s_mean": float(
             np.mean([it.seconds_register for it in ipe.iterations]) if ipe.iterations else np.nan
         ),
@@ -568,6 +569,11 @@ class TrialGroup:
     execute: bool = False  # execute the adapted path (re-parks allowed), score the tool tip
     tmma: bool = False  # replay the taught joints (TMMA) first from the same park
     trials: list[int] | None = None  # which trials (None: all, 0 .. cfg.n_trials() - 1)
+
+
+#: the columns of a trial's row that measure time or memory: the only ones that differ
+#: between two runs of the same trial (executor, worker count, machine load)
+TIMING_COLUMNS = frozenset({"trial_s", "worker_rss_mb", "compute_s", "final_s", "register_s_mean"})
 
 
 def worker_config_json(cfg: MMPAExperimentConfig) -> str:

@@ -75,6 +75,7 @@ def summarize_sites(rows: list[dict], sites: list[str]) -> dict:
             "park_E_R": stats(x["park_E_R"] for x in r),
             "park_E_t": stats(x["park_E_t"] for x in r),
             "compute_s": stats(x["compute_s"] for x in r),
+            "final_s": stats(x["final_s"] for x in r),
             "register_s": stats(x["register_s_mean"] for x in r),
         }
     return out
@@ -181,6 +182,7 @@ def _site_summary(m: dict) -> dict:
         "E_R": m["E_R"]["mean"],
         "iterations": m["iterations"]["mean"],
         "compute_s_median": m["compute_s"]["median"],
+        "final_s_median": m["final_s"]["median"],
     }
 
 
