@@ -11,6 +11,12 @@ and moves the clock to its stamp; :meth:`BagOdometry.odometry` returns the lates
 message stamped at or before the clock (the reading a live robot has when the scan arrives);
 :meth:`BagCamera.capture` returns the next RGB-D frame (colour, depth and camera info matched
 by stamp) and moves the clock. Past the last message a read raises :class:`EndOfBagError`.
+:class:`BagJointStates` serves the arm's ``/joint_states`` the same way: the sample at or
+before the clock (``joint_positions``), or the samples in order (iteration moves the clock).
+
+Odometry: the ``/odom`` messages, or, in a bag without them, the ``odom -> base_link``
+transforms of ``/tf`` (frame names in :class:`BagTopics`; many robots publish only the TF),
+with the body twist differenced from consecutive poses (:func:`odometry_from_tf`).
 """
 
 from __future__ import annotations
@@ -26,17 +32,20 @@ from pydantic import BaseModel, ConfigDict
 
 from mmpa.bags import messages as rm
 from mmpa.errors import ConfigError, InvalidInputError, MMPAError
-from mmpa.geometry import Array
+from mmpa.geometry import Array, se2_compose, se2_inv, wrap_angle
 from mmpa.robot.description import CameraIntrinsics
 from mmpa.robot.interfaces import LaserScan, Odometry, RGBDFrame
 
 __all__ = [
     "BagCamera",
+    "BagJointStates",
     "BagLidar",
     "BagOdometry",
     "BagPlayback",
     "BagTopics",
     "EndOfBagError",
+    "JointSample",
+    "odometry_from_tf",
     "read_messages",
 ]
 
@@ -64,6 +73,10 @@ class BagTopics(BaseModel):
     map: str = "/map"
     reflectors: str = "/reflectors"
     truth_base: str = "/truth/base_pose"
+    joint_states: str = "/joint_states"
+    # frames of the odometry transform in /tf (used when the bag has no odometry topic)
+    odom_frame: str = "odom"
+    base_frame: str = "base_link"
 
 
 def _open(path: Path) -> Any:
@@ -111,6 +124,45 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
     return out
 
 
+def odometry_from_tf(
+    transforms: Iterable[tuple[float, str, str, Array]],
+    odom_frame: str = "odom",
+    base_frame: str = "base_link",
+) -> list[Odometry]:
+    """Odometry from ``/tf``: the planar part ``[x, y, theta]`` of every ``odom_frame ->
+    base_frame`` transform of ``transforms`` (``(stamp s, parent, child, 4x4)``; a leading
+    ``/`` of ROS 1 frame names is ignored), in stamp order (of equal stamps the last one).
+    A TF carries no twist: the body twist ``[v, w]`` (m/s, rad/s) is that of the constant-
+    twist arc from the previous pose, ``d = se2_inv(p[i-1]) (+) p[i]`` over ``dt``:
+    ``w = dtheta / dt``, ``v = sign(dx) |(dx, dy)| (dtheta / 2) / sin(dtheta / 2) / dt``
+    (exact for a differential base driving an arc; zero for the first pose): what the robot
+    knows at ``t[i]``."""
+    by_t: dict[float, Array] = {}
+    for t, parent, child, Tm in transforms:
+        if parent.lstrip("/") == odom_frame and child.lstrip("/") == base_frame:
+            by_t[float(t)] = rm._planar(Tm)
+    out: list[Odometry] = []
+    prev: tuple[float, Array] | None = None
+    for t in sorted(by_t):
+        pose = by_t[t]
+        twist = np.zeros(2)
+        if prev is not None and t > prev[0]:
+            d = se2_compose(se2_inv(prev[1]), pose)
+            dt = t - prev[0]
+            dth = float(wrap_angle(d[2]))
+            half = 0.5 * dth
+            arc = half / np.sin(half) if abs(half) > 1e-9 else 1.0
+            v = float(np.copysign(np.hypot(d[0], d[1]) * arc, d[0])) / dt
+            twist = np.array([v, dth / dt])
+        out.append(
+            Odometry(
+                pose=pose, twist=twist, stamp=t, frame_id=odom_frame, child_frame_id=base_frame
+            )
+        )
+        prev = (t, pose)
+    return out
+
+
 @dataclass
 class BagPlayback:
     """The data of one bag for the bag-backed sensors, and their shared clock (s)."""
@@ -125,6 +177,7 @@ class BagPlayback:
     truth_base: tuple[Array, Array] | None = None  # (t (N,), [x, y, theta] (N, 3))
     extra: dict[str, list[Any]] = field(default_factory=dict)
     clock: float = -np.inf
+    odometry_source: str = ""  # where :attr:`odometry` came from ("" : nowhere)
     _odom_t: list[float] = field(default_factory=list, repr=False)
 
     @classmethod
@@ -156,13 +209,24 @@ class BagPlayback:
             poses = np.array([rm._planar(rm.from_pose(m.pose)) for m in raw[tp.truth_base]])
             pb.truth_base = (ts_, poses)
         pb.extra = {k: raw[k] for k in extra}
+        if pb.odometry:
+            pb.odometry_source = tp.odom
+        else:  # no odometry topic: the odom -> base_link transforms of /tf
+            pb.odometry = odometry_from_tf(pb.transforms, tp.odom_frame, tp.base_frame)
+            pb.odometry_source = (
+                f"{tp.tf} ({tp.odom_frame} -> {tp.base_frame})" if pb.odometry else ""
+            )
         pb._odom_t = [o.stamp for o in pb.odometry]
         return pb
 
     def odometry_at(self, t: float) -> Odometry:
         """The latest odometry stamped at or before ``t`` (s)."""
         if not self.odometry:
-            raise InvalidInputError(f"{self.path}: no odometry on {self.topics.odom}")
+            tp = self.topics
+            raise InvalidInputError(
+                f"{self.path}: no odometry on {tp.odom}, nor {tp.odom_frame} -> "
+                f"{tp.base_frame} transforms on {tp.tf}"
+            )
         i = bisect.bisect_right(self._odom_t, t + _STAMP_TOL) - 1
         if i < 0:
             raise InvalidInputError(
@@ -263,3 +327,109 @@ class BagCamera:
             stamp=t,
             frame_id=str(c.header.frame_id),
         )
+
+
+@dataclass(frozen=True)
+class JointSample:
+    """One recorded joint state: ``stamp`` s, ``q`` (n,) rad, ``qd`` (n,) rad/s or None."""
+
+    stamp: float
+    q: Array
+    qd: Array | None
+
+
+class BagJointStates:
+    """The arm's joint states from a bag (``sensor_msgs/JointState`` on ``topics.joint_states``):
+    the joint-state source of a robot, played back.
+
+    ``names``: the joints to serve, in this order (default: the first message's names);
+    messages that lack one of them (another group's states on the same topic) are skipped.
+    :meth:`joint_positions` is the latest sample at or before the playback clock (the
+    encoders a live robot reads when the scan or frame that moved the clock arrives);
+    iterating (or :meth:`read`) returns the samples in stamp order and moves the clock to
+    each. :attr:`times` (N,) s, :attr:`positions` (N, n) rad and :attr:`velocities` (N, n)
+    rad/s (NaN where a message carries none) hold them all, e.g. to teach from a recording.
+    """
+
+    def __init__(self, playback: BagPlayback, names: Iterable[str] | None = None) -> None:
+        self._pb = playback
+        topic = playback.topics.joint_states
+        msgs = read_messages(playback.path, [topic])[topic]
+        if not msgs:
+            raise InvalidInputError(f"{playback.path}: no joint states on {topic}")
+        decoded = [rm.from_joint_state(m) for m in msgs]
+        want = list(names) if names is not None else decoded[0][1]
+        if not want or len(set(want)) != len(want):
+            raise InvalidInputError(f"joint names must be distinct and not none, got {want}")
+        rows: dict[float, tuple[Array, Array]] = {}
+        for t, nm, q, v in decoded:
+            idx = {n: i for i, n in enumerate(nm)}
+            if not all(n in idx for n in want):
+                continue
+            sel = [idx[n] for n in want]
+            rows[t] = (q[sel], v[sel] if v is not None else np.full(len(sel), np.nan))
+        if not rows:
+            raise InvalidInputError(
+                f"{playback.path}: no message on {topic} has all of the joints {want}"
+            )
+        self.names: list[str] = want
+        self.times = np.array(sorted(rows))
+        self.positions = np.array([rows[t][0] for t in self.times])
+        self.velocities = np.array([rows[t][1] for t in self.times])
+        self._t = self.times.tolist()
+        self._i = 0
+
+    @classmethod
+    def open(
+        cls,
+        path: str | Path,
+        topics: BagTopics | None = None,
+        names: Iterable[str] | None = None,
+    ) -> BagJointStates:
+        """The joint states of the bag at ``path`` on a playback clock of their own."""
+        return cls(BagPlayback(Path(path), topics or BagTopics()), names)
+
+    def __len__(self) -> int:
+        return len(self._t)
+
+    def _sample(self, i: int) -> JointSample:
+        v = self.velocities[i]
+        return JointSample(
+            float(self.times[i]),
+            self.positions[i].copy(),
+            None if np.all(np.isnan(v)) else v.copy(),
+        )
+
+    def at(self, t: float) -> JointSample:
+        """The latest sample stamped at or before ``t`` (s)."""
+        i = bisect.bisect_right(self._t, t + _STAMP_TOL) - 1
+        if i < 0:
+            raise InvalidInputError(
+                f"{self._pb.path}: no joint state at or before t = {t:.3f} s "
+                f"(the first is at {self._t[0]:.3f} s)"
+            )
+        return self._sample(i)
+
+    def joint_positions(self) -> Array:
+        """Encoder readings (rad), shape (n,), at the playback clock."""
+        return self.at(self._pb.clock).q
+
+    def joint_velocities(self) -> Array:
+        """Joint velocities (rad/s), shape (n,), at the playback clock (NaN if not recorded)."""
+        s = self.at(self._pb.clock)
+        return s.qd if s.qd is not None else np.full(len(self.names), np.nan)
+
+    def read(self) -> JointSample:
+        """The next sample in stamp order; moves the playback clock to its stamp."""
+        if self._i >= len(self._t):
+            raise EndOfBagError(
+                f"{self._pb.path}: no more joint states on {self._pb.topics.joint_states}"
+            )
+        s = self._sample(self._i)
+        self._i += 1
+        self._pb.clock = max(self._pb.clock, s.stamp)
+        return s
+
+    def __iter__(self) -> Iterator[JointSample]:
+        while self._i < len(self._t):
+            yield self.read()

@@ -5,7 +5,8 @@
   file or a bag directory);
 - :mod:`mmpa.bags.record`: :class:`Recorder`, which records a running twin through wrapped
   devices without touching the simulator;
-- :mod:`mmpa.backends.bag`: bag-backed ``Lidar`` / odometry / ``Camera`` sources;
+- :mod:`mmpa.backends.bag`: bag-backed ``Lidar`` / odometry (``/odom``, else ``/tf``) /
+  ``Camera`` / joint-state sources;
 - :mod:`mmpa.bags.localize`: offline localization over a bag (``mmpa localize``).
 """
 

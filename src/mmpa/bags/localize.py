@@ -250,6 +250,7 @@ def run_localize(
         "seed": cfg.seed,
         "scans": len(res.t),
         "odometry_messages": len(pb.odometry),
+        "odometry_source": pb.odometry_source,
         "duration_s": round(float(res.t[-1] - res.t[0]), 3),
         "compute_s": round(res.seconds, 3),
         "final_estimate": [round(float(v), 6) for v in res.estimate[-1]],

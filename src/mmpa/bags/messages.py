@@ -34,6 +34,7 @@ __all__ = [
     "from_camera_info",
     "from_depth_image",
     "from_image_rgb",
+    "from_joint_state",
     "from_laser_scan",
     "from_odometry",
     "from_pose",
@@ -350,13 +351,24 @@ def from_camera_info(msg: Any) -> CameraIntrinsics:
 
 def joint_state(stamp: float, names: list[str], q: Array, qd: Array | None = None) -> Any:
     """``sensor_msgs/JointState`` (rad, rad/s; no effort)."""
-    q = np.asarray(q, float).reshape(-1)
+    q = np.ascontiguousarray(q, dtype=float).reshape(-1)  # CDR needs packed arrays
     if len(names) != q.shape[0]:
         raise InvalidInputError(f"{len(names)} joint names for {q.shape[0]} positions")
-    v = np.zeros(0) if qd is None else np.asarray(qd, float).reshape(-1)
+    v = np.zeros(0) if qd is None else np.ascontiguousarray(qd, dtype=float).reshape(-1)
     return T("sensor_msgs/msg/JointState")(
         header=_header(stamp, ""), name=list(names), position=q, velocity=v, effort=np.zeros(0)
     )
+
+
+def from_joint_state(msg: Any) -> tuple[float, list[str], Array, Array | None]:
+    """``sensor_msgs/JointState`` (ROS 1 or ROS 2) -> ``(stamp s, names, positions (n,) rad,
+    velocities (n,) rad/s or None when the message carries none)``."""
+    names = [str(n) for n in msg.name]
+    q = np.asarray(msg.position, dtype=np.float64).reshape(-1)
+    if q.shape[0] != len(names):
+        raise InvalidInputError(f"a JointState with {len(names)} names and {q.shape[0]} positions")
+    v = np.asarray(msg.velocity, dtype=np.float64).reshape(-1)
+    return _stamp_of(msg.header), names, q, (v if v.shape == q.shape else None)
 
 
 # --- transforms and poses --------------------------------------------------------------------

@@ -13,7 +13,11 @@ Topics (REP-105 frames, stamps = sim time; see :mod:`mmpa.bags.messages`):
 ==============================================  ==========================================
 ``/scan``                                        every scan read (``laser``)
 ``/odom``, ``/tf`` odom -> base_link             every new odometry reading
-``/joint_states``, ``/tf`` arm links             with every scan and camera frame
+``/joint_states``, ``/tf`` arm links             with every scan and camera frame; with
+(``arm_base`` -> ``link1`` .. ``flange``)        ``joint_rate_hz``, also every
+                                                 ``1 / joint_rate_hz`` s of stepped sim
+                                                 time (every arm motion), with
+                                                 ``/truth/tcp_pose``
 ``/camera/color/image_raw`` (rgb8),              every capture (``camera_color_optical_frame``)
 ``/camera/aligned_depth_to_color/image_raw``
 (16UC1 mm), ``/camera/color/camera_info``
@@ -25,6 +29,16 @@ Topics (REP-105 frames, stamps = sim time; see :mod:`mmpa.bags.messages`):
 ``/truth/base_pose``, ``/truth/tcp_pose``,       ground truth (evaluation only)
 ``/truth/camera_pose``, ``/truth/reflectors``
 ==============================================  ==========================================
+
+The arm moves inside the simulator's ``step`` (``SimArm.move_joints`` and ``follow`` run the
+whole motion in one call), which no device wrapper sees. With ``joint_rate_hz`` the recorder
+therefore wraps the world's ``step`` on the instance (the class and the simulator are
+untouched; :meth:`Recorder.close` removes the wrapper): a call for ``n`` physics steps runs
+as the same ``n`` steps in chunks of ``round(1 / (joint_rate_hz * dt))`` steps, and after
+each chunk and at the end of every call the arm's state is recorded. The chunks step the same
+physics in the same order (MuJoCo's ``mj_forward`` between them recomputes derived
+quantities only), so the run is unchanged; a reader of the encoders after a ``step`` (as
+``follow`` with ``record_hz`` is) finds that very sample in the bag.
 """
 
 from __future__ import annotations
@@ -35,8 +49,9 @@ import numpy as np
 
 from mmpa.bags import messages as rm
 from mmpa.bags.writer import BagWriter
+from mmpa.errors import InvalidInputError, MMPAError
 from mmpa.geometry import Array, inv, se2_to_T
-from mmpa.robot.kinematics import link_transforms
+from mmpa.robot.kinematics import _dh_matrices
 
 if TYPE_CHECKING:  # pragma: no cover
     from mmpa.localization.maps import OccupancyGrid
@@ -76,12 +91,35 @@ class Recorder:
     pose, so 500 poses per scan at 10 Hz would cost ~15 % of a twin run's wall time.
     Bag stamps are sim time; should the sim clock go back (a ``world.reset``), later stamps
     are shifted to keep the bag's time monotonic.
+
+    ``joint_rate_hz`` (None: off): also record the arm (``/joint_states``, the arm's
+    ``/tf`` and ``/truth/tcp_pose``; the true base pose stays with the scans and frames,
+    and a scan or frame at the time of such a sample adds no second arm state) every
+    ``1 / joint_rate_hz`` s of stepped sim time (rounded to whole physics steps:
+    :attr:`joint_period_s`) and at the end of every ``world.step``, so every arm motion is
+    in the bag (see the module docstring). Call :meth:`close` (or use the recorder as a
+    context manager) to unhook.
     """
 
-    def __init__(self, writer: BagWriter, world: SimWorld, max_particles: int = 100) -> None:
+    def __init__(
+        self,
+        writer: BagWriter,
+        world: SimWorld,
+        max_particles: int = 100,
+        joint_rate_hz: float | None = None,
+    ) -> None:
         self.writer = writer
         self._world = world
         self.max_particles = int(max_particles)
+        if joint_rate_hz is not None and not (np.isfinite(joint_rate_hz) and joint_rate_hz > 0):
+            raise InvalidInputError(f"joint_rate_hz must be a positive rate, got {joint_rate_hz}")
+        self.joint_rate_hz = joint_rate_hz
+        #: s between two arm samples within a step (whole physics steps); None: not sampled
+        self.joint_period_s: float | None = None
+        self._last_arm = -np.inf
+        self._hooked = False
+        self._dh: tuple[Array, Array, Array, Array] | None = None
+        self._pending: list[tuple[float, Array, Array, Array]] = []
         self._offset = 0.0
         self._last = 0.0
         self._last_odom: float | None = None
@@ -104,7 +142,51 @@ class Recorder:
         if self._proxy is None:
             self._proxy = _RecordingWorld(self._world, self)
         self.write_static()
+        if self.joint_rate_hz is not None and not self._hooked:
+            self._hook_steps(float(self.joint_rate_hz))
         return self._proxy  # type: ignore[return-value]
+
+    def _hook_steps(self, rate_hz: float) -> None:
+        """Wrap the world's ``step`` (on the instance) to sample the arm while it steps."""
+        w = self._world
+        if "step" in vars(w):
+            raise MMPAError("the world's stepping is recorded already (one Recorder per world)")
+        step = w.step  # the class's method, bound
+        dt = float(w.model.opt.timestep)
+        k = max(1, round(1.0 / (rate_hz * dt)))
+        self.joint_period_s = k * dt
+
+        def recording_step(duration: float) -> None:
+            if not (np.isfinite(duration) and duration >= 0):
+                return step(duration)  # the world's own error
+            left = round(duration / dt)  # the physics steps SimWorld.step would take
+            try:
+                while left > k:
+                    step(k * dt)
+                    left -= k
+                    self.on_arm()
+                step(left * dt)
+                self.on_arm()
+            finally:
+                self._flush_arm()
+            return None
+
+        w.step = recording_step  # type: ignore[method-assign]
+        self._hooked = True
+
+    def close(self) -> None:
+        """Unhook the world's ``step`` (idempotent). The writer stays open: its owner closes
+        it."""
+        if self._hooked:
+            self._flush_arm()
+            vars(self._world).pop("step", None)
+            self._hooked = False
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     def localizer(self, loc: Any) -> Any:
         """``loc`` with its ``initialize`` and ``update`` recorded."""
@@ -145,23 +227,65 @@ class Recorder:
         )
 
     # --- readings -----------------------------------------------------------------------------
-    def _arm_and_truth(self, t: float) -> None:
-        w, F = self._world, rm.FRAMES
-        q = w.arm.joint_positions()
-        self.writer.write(
-            TOPICS["joint_states"], rm.joint_state(t, JOINT_NAMES, q, w.arm.joint_velocities())
-        )
-        L = link_transforms(w.nominal.arm.dh, q)
+    def _arm_state(self, t: float) -> tuple[float, Array, Array, Array] | None:
+        """``(t, q, qd, T_map_tcp true)`` now, for bag time ``t``; None when the stepping
+        recorded the arm at that very time already."""
+        if self._hooked and t <= self._last_arm:
+            return None
+        self._last_arm = t
+        arm = self._world.arm
+        return t, arm.joint_positions(), arm.joint_velocities(), self._world.truth.T_map_tcp()
+
+    def _write_arm(
+        self, state: tuple[float, Array, Array, Array], T_map_base: Array | None = None
+    ) -> None:
+        """``/joint_states``, the arm's ``/tf`` (and the true base pose when given) and
+        ``/truth/tcp_pose`` of an :meth:`_arm_state`."""
+        t, q, qd, T_tcp = state
+        F = rm.FRAMES
+        self.writer.write(TOPICS["joint_states"], rm.joint_state(t, JOINT_NAMES, q, qd))
+        A = self._link_steps(q)
         parents = [F["arm_base"], *ARM_FRAMES[:-1]]
-        tfs = [
-            rm.transform_stamped(t, parents[i], ARM_FRAMES[i], inv(L[i]) @ L[i + 1])
-            for i in range(6)
-        ]
+        tfs = [rm.transform_stamped(t, parents[i], ARM_FRAMES[i], A[i]) for i in range(6)]
         self.writer.write(TOPICS["tf"], rm.tf_message(tfs), t)
-        self.writer.write(
-            TOPICS["truth_base"], rm.pose_stamped(t, F["map"], w.truth.T_map_base_link())
-        )
-        self.writer.write(TOPICS["truth_tcp"], rm.pose_stamped(t, F["map"], w.truth.T_map_tcp()))
+        if T_map_base is not None:
+            self.writer.write(TOPICS["truth_base"], rm.pose_stamped(t, F["map"], T_map_base))
+        self.writer.write(TOPICS["truth_tcp"], rm.pose_stamped(t, F["map"], T_tcp))
+
+    def _flush_arm(self) -> None:
+        """Write the arm states sampled during a ``step`` (kept until it returns: building
+        the messages in one go after the physics, not between its chunks, took ~30 % less
+        CPU in ``mmpa run``; the bag stays in time order, as nothing else is written while
+        the world steps)."""
+        pending, self._pending = self._pending, []
+        for state in pending:
+            self._write_arm(state)
+
+    def _arm_and_truth(self, t: float) -> None:
+        """The arm and the true base pose at bag time ``t`` (the arm unless the stepping
+        recorded it at that very time already)."""
+        state = self._arm_state(t)
+        T_base = self._world.truth.T_map_base_link()
+        if state is not None:
+            self._write_arm(state, T_base)
+        else:
+            self.writer.write(TOPICS["truth_base"], rm.pose_stamped(t, rm.FRAMES["map"], T_base))
+
+    def _link_steps(self, q: Array) -> Array:
+        """(6, 4, 4): each DH link's pose in its parent's frame, ``A_i(q_i)`` of the NOMINAL
+        arm (``link_transforms`` is their running product)."""
+        if self._dh is None:
+            a, d, alpha, off = self._world.nominal.arm.dh.as_arrays()
+            self._dh = (a, d, alpha, off)
+        a, d, alpha, off = self._dh
+        return _dh_matrices(np.asarray(q, float) + off, d, a, alpha)
+
+    def on_arm(self) -> None:
+        """The arm's state now (the stepping hook calls it; the base's true pose comes with
+        the scans and frames)."""
+        state = self._arm_state(self.stamp(self._world.time))
+        if state is not None:
+            self._pending.append(state)
 
     def on_scan(self, scan: Any) -> None:
         t = self.stamp(scan.stamp)

@@ -267,6 +267,10 @@ def run_cmd(
     profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
+    record: Annotated[
+        Path | None,
+        typer.Option(help="Record the run to this ROS 2 bag (FILE.mcap, or a rosbag2 folder)."),
+    ] = None,
 ) -> None:
     """Automation stage in the twin (paper 000 §3.2): park, IPE, adapted path, execute."""
     from mmpa.experiments.mmpa_twin import run_task
@@ -280,6 +284,7 @@ def run_cmd(
                 cfg=_mmpa_config(config, seed, set_, profile),
                 trial=trial,
                 tmma=tmma,
+                record=record,
             )
     except MMPAError as e:
         fail(e)
