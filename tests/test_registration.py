@@ -477,3 +477,28 @@ def test_color_correlation_matches_numpy_and_ignores_gain_and_offset() -> None:
     assert color_correlation(a, np.full_like(a, 0.5)) == np.inf  # untextured: no check
     with pytest.raises(InvalidInputError):
         color_correlation(a, b[:10])
+
+
+def test_color_correlation_given_the_position_ignores_a_lighting_gradient() -> None:
+    from mmpa.registration.pipeline import color_correlation
+
+    rng = np.random.default_rng(5)
+    p = rng.uniform([-0.4, -0.3, 0.6], [0.4, 0.3, 1.2], (800, 3))  # m
+    texture = rng.random(800)
+    a = np.repeat(texture[:, None], 3, axis=1)
+    noisy = texture + 0.05 * rng.standard_normal(800)
+    # the repeat's light: exposure, offset and a strong gradient across the scene
+    lit = 0.8 * noisy + 0.1 + p @ np.array([1.2, -0.8, 0.4])
+    b = np.repeat(lit[:, None], 3, axis=1)
+    plain = color_correlation(a, b)
+    partial = color_correlation(a, b, points=p)
+    # the independent computation: residuals of both on [1, x, y, z], then numpy's Pearson
+    X = np.column_stack([np.ones(800), p])
+    res = [y - X @ np.linalg.lstsq(X, y, rcond=None)[0] for y in (texture, lit)]
+    assert partial == pytest.approx(np.corrcoef(*res)[0, 1], abs=1e-9)
+    assert partial > 0.95 and plain < 0.7  # the gradient fooled the plain check
+    # a wrong match (the texture of other points) stays refused under the same light
+    wrong = np.repeat(rng.permutation(lit)[:, None], 3, axis=1)
+    assert abs(color_correlation(a, wrong, points=p)) < 0.15
+    with pytest.raises(InvalidInputError):
+        color_correlation(a, b, points=p[:10])

@@ -34,8 +34,10 @@ target). Stages:
    cloud radius ``L``), the information matrix
    ``H = (lambda sum J_G^T J_G + (1 - lambda) sum J_C^T J_C) / N`` must have its smallest
    eigenvalue above ``min_information``; with color on both sides, the intensities must
-   correlate over the correspondences (:func:`color_correlation`, ``min_color_correlation``:
-   a geometric fit along a repeated structure puts different colors on top of each other).
+   correlate over the correspondences (:func:`color_correlation`, ``min_color_correlation``,
+   given an affine function of the position, so that exposure and a lighting gradient do not
+   count: a geometric fit along a repeated structure puts different colors on top of each
+   other).
    A single plane of one color leaves three directions
    with ``H`` ~ 0 (two in-plane translations, the rotation about the normal); texture on the
    plane fills them through ``d``.
@@ -707,6 +709,7 @@ def _fine_stage(
             np.asarray(src.levels[last.voxel].colors)[corr[:, 0]],
             np.asarray(tgt.levels[last.voxel].colors)[corr[:, 1]],
             cfg.color_check_min_std,
+            np.asarray(tgt.levels[last.voxel].points)[corr[:, 1]],
         )
         stages[f"{prefix}color_correlation"] = rho
         if rho < cfg.min_color_correlation:
@@ -755,19 +758,34 @@ def rmse_gate(src: Prepared, tgt: Prepared, cfg: RegistrationConfig) -> float:
     return float(min(max(cfg.max_rmse, cfg.rmse_margin * e), cap))
 
 
-def color_correlation(colors_s: Array, colors_t: Array, min_std: float = 0.02) -> float:
+def color_correlation(
+    colors_s: Array, colors_t: Array, min_std: float = 0.02, points: Array | None = None
+) -> float:
     """Pearson correlation of the intensities (mean of RGB in [0, 1]) of corresponding
     points, ``colors_s`` and ``colors_t`` (N, 3), row i of one matching row i of the other.
 
     ``rho = cov(I_s, I_t) / (std(I_s) std(I_t))``, invariant to ``I -> a I + b`` on either
-    side (a change of exposure or lighting). Returns ``+inf`` (nothing to check) when either
-    standard deviation is below ``min_std`` (an untextured scene) or there are fewer than
-    3 pairs.
+    side (a change of exposure). With ``points`` (N, 3), the correspondences' positions (m,
+    either cloud's frame), it is the partial correlation given an affine function of the
+    position: both intensities are first replaced by their residuals of a least-squares fit
+    on ``[1, x, y, z]``, so a lighting gradient across the scene (``I_t = a I_s + b + g . p``)
+    leaves it unchanged too. Returns ``+inf`` (nothing to check) when either standard
+    deviation is below ``min_std`` (an untextured scene) or there are fewer than 3 pairs
+    (with ``points``: 6).
     """
     a = np.asarray(colors_s, float).reshape(-1, 3).mean(axis=1)
     b = np.asarray(colors_t, float).reshape(-1, 3).mean(axis=1)
     if len(a) != len(b):
         raise InvalidInputError(f"color_correlation: {len(a)} vs {len(b)} rows")
+    if points is not None:
+        p = np.asarray(points, float).reshape(-1, 3)
+        if len(p) != len(a):
+            raise InvalidInputError(f"color_correlation: {len(p)} points for {len(a)} rows")
+        if len(a) < 6:
+            return float("inf")
+        X = np.column_stack([np.ones(len(p)), p - p.mean(axis=0)])
+        coef, *_ = np.linalg.lstsq(X, np.column_stack([a, b]), rcond=None)
+        a, b = (np.column_stack([a, b]) - X @ coef).T
     if len(a) < 3:
         return float("inf")
     sa, sb = float(a.std()), float(b.std())
