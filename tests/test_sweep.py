@@ -180,6 +180,29 @@ def test_cheapest_real_experiment(tmp_path):
     assert (tmp_path / "sw" / "sweep_points.png").stat().st_size > 5_000
 
 
+def test_metrics_by_their_last_parts_and_a_typo_stops_after_one_point(toy, tmp_path):
+    spec = parse_sweep(
+        {"experiments": ["toy"], "trials": 2, "sweep": {"scale": [1.0, 2.0]},
+         "metrics": ["a.mean"]}
+    )  # fmt: skip
+    run_sweep(spec, tmp_path / "ok")
+    rows = _csv(tmp_path / "ok" / "sweep.csv")
+    assert [float(r["site.a.mean"]) for r in rows] == pytest.approx(
+        [2 * _expected_mean(scale=1.0), 2 * _expected_mean(scale=2.0)]
+    )
+    assert "mean" not in rows[0]  # "a.mean" names site.a.mean only
+    bad = spec.model_copy(update={"metrics": ["a.mean", "b.mean"]})
+    n = len(toy.calls)
+    with pytest.raises(ConfigError, match=r"\['b.mean'\] name nothing.*site.a.mean"):
+        run_sweep(bad, tmp_path / "bad")
+    assert len(toy.calls) == n + 1  # stopped after the first point, not at the end
+
+
+def test_docs_sensitivity_files_are_valid():
+    for name, n in (("ipe", 26), ("path", 26), ("localization", 28)):
+        assert len(plan_points(load_sweep(f"docs/sensitivity_{name}.yaml"))) == n
+
+
 def test_docs_example_is_valid():
     spec = load_sweep("docs/sweep_example.yaml")
     pts = plan_points(spec)

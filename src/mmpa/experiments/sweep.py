@@ -248,6 +248,7 @@ def run_sweep(
     out.mkdir(parents=True, exist_ok=True)
     report = progress or (lambda stage, frac: None)
     rows: list[dict[str, Any]] = []
+    firsts: dict[str, dict[str, Any]] = {}  # experiment -> the summary of its first point
     n = len(points)
     for i, p in enumerate(points):
         mod = experiment_module(p.experiment)
@@ -273,6 +274,9 @@ def run_sweep(
                 resume=resume and parallel,
             )
         summary = json.loads((folder / "summary.json").read_text())
+        if p.experiment not in firsts:
+            firsts[p.experiment] = summary
+            _check_metrics(spec, firsts)  # a typo stops the sweep after one point per experiment
         rows.append(_row(spec, p, summary))
         step("done", 1.0)
     files = write_summary(spec, rows, out)
@@ -292,13 +296,33 @@ def check_run_options(workers: int, executor: str) -> None:
 
 def point_metrics(experiment: str, summary: dict[str, Any], wanted: Sequence[str] | None = None):
     """The metrics of one point: the numeric leaves of its ``summary`` (dotted names), those
-    named in ``wanted`` (a dotted name or a leaf name), else :data:`DEFAULT_METRICS` of the
-    experiment, else all but ``wall_seconds``. NaN stays NaN (JSON ``null`` reads as NaN)."""
+    named in ``wanted`` (a dotted name or its last parts: ``enhanced.err_pos_cm`` names
+    ``methods.enhanced.err_pos_cm``), else :data:`DEFAULT_METRICS` of the experiment, else
+    all but ``wall_seconds``. NaN stays NaN (JSON ``null`` reads as NaN)."""
     flat = _flatten(summary)
     names = wanted if wanted is not None else DEFAULT_METRICS.get(experiment)
     if names is None:
         return {k: v for k, v in flat.items() if k != "wall_seconds"}
-    return {k: v for k, v in flat.items() if k in names or k.rsplit(".", 1)[-1] in names}
+    return {k: v for k, v in flat.items() if any(_names(k, n) for n in names)}
+
+
+def _names(key: str, name: str) -> bool:
+    """Whether the metric ``name`` names the dotted summary leaf ``key``."""
+    return key == name or key.endswith("." + name)
+
+
+def _check_metrics(spec: SweepSpec, summaries: dict[str, dict[str, Any]]) -> None:
+    """Refuse metric names that name no numeric leaf in any experiment's summary, once every
+    experiment of ``spec`` has a finished point (``summaries``: experiment -> its first)."""
+    if not spec.metrics or set(summaries) != set(spec.experiments):
+        return
+    leaves = sorted({k for s in summaries.values() for k in _flatten(s)})
+    missing = [m for m in spec.metrics if not any(_names(k, m) for k in leaves)]
+    if missing:
+        raise ConfigError(
+            f"sweep metrics {missing} name nothing in the summaries of "
+            f"{', '.join(summaries)}; their numeric figures are: {', '.join(leaves)}"
+        )
 
 
 def write_summary(spec: SweepSpec, rows: list[dict[str, Any]], out: Path) -> list[str]:
