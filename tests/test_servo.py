@@ -351,3 +351,41 @@ def test_a_moving_object_is_told_from_its_measurements_line():
     shift = [(0.05 * k, c + np.array([0.0, 0.07, 0.0]) * 0.05 * k) for k in range(11)]
     fast = [(0.05 * k, c + np.array([0.0, 0.2, 0.0]) * 0.05 * k) for k in range(11)]
     assert not g._fast(shift) and g._fast(fast)
+
+
+def test_intercept_stream_meets_a_goal_moving_at_constant_velocity():
+    """ "intercept": goals sent at 20 Hz (the goal at the tick, moving at ``v_goal``) are
+    streamed at ``servo_rate_hz`` along the online intercept: the set-points keep qd_max and
+    qdd_max (finite differences) and, after the catch-up, lie on the goal's line
+    ``q_goal0 + v_goal t`` (closed form) at every sub-step."""
+    from mmpa.robot.limits import path_accelerations, path_velocities
+    from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+
+    rb = default_robot()
+    q0 = np.array(rb.arm.home, float)
+    cfg = GraspConfig(stream_accel_limit="intercept")
+    g = TrackingGrasp(None, rb, cfg)
+    clock = [0.0]
+    arm = _RecordingArm(clock)
+
+    def tick(duration, clock=clock):
+        clock[0] += duration
+
+    g._clock = lambda clock=clock: clock[0]
+    g._set_limited(arm, True)
+    wait = g._streaming(arm, tick)
+    g._start_stream(q0)
+    q_goal0 = q0 + np.array([0.3, -0.2, 0.25, 0.1, -0.1, 0.2])
+    v_goal = np.array([0.2, 0.1, -0.15, 0.0, 0.05, -0.1])
+    for _ in range(40):  # 2 s at 20 Hz
+        g._send_intercept(q_goal0 + v_goal * clock[0], v_goal, 0.05)
+        wait(0.05)
+    t = np.array([0.0] + [s[0] + 0.01 for s in arm.sent])  # each set-point for its sub-step
+    q = np.array([q0] + [s[1] for s in arm.sent])
+    np.testing.assert_allclose(np.diff(t), 1.0 / cfg.servo_rate_hz)
+    v = path_velocities(t, q)
+    a = path_accelerations(t, q)
+    assert np.max(np.abs(v) / np.asarray(rb.arm.qd_max)) <= 1 + 1e-6
+    assert np.max(np.abs(a) / np.asarray(rb.arm.qdd_max)) <= 1 + 1e-6
+    late = t >= 1.5
+    np.testing.assert_allclose(q[late], q_goal0 + np.outer(t[late], v_goal), atol=1e-6)
