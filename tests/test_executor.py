@@ -57,6 +57,17 @@ def test_process_executor_returns_job_order_from_other_processes(tmp_path, monke
     assert "OMP_NUM_THREADS" not in os.environ
 
 
+def test_ray_workers_run_single_threaded_and_leave_the_environment(tmp_path, monkeypatch):
+    pytest.importorskip("ray")  # the dev extra has it
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    # a job Ray's workers can import: the variable as the worker sees it
+    jobs = [({"trial": i}, os.getenv, ("OMP_NUM_THREADS",)) for i in range(2)]
+    with ex.RayExecutor(2, tmp_path) as e:
+        recs = e.run(jobs, lambda *a: None)
+    assert [r["result"] for r in recs] == ["1", "1"]
+    assert "OMP_NUM_THREADS" not in os.environ
+
+
 def test_worker_thread_counts_set_in_the_environment_win(tmp_path, monkeypatch):
     monkeypatch.setenv("OMP_NUM_THREADS", "3")
     assert "OMP_NUM_THREADS" not in ex.worker_env()

@@ -346,11 +346,12 @@ class RayExecutor(Executor):
         self._ray = ray
         self._started = False
         if not ray.is_initialized():
-            env = {"runtime_env": {"env_vars": worker_env()}}
-            if address:
-                ray.init(address=address, log_to_driver=False, **env)
+            if address:  # the cluster's workers: through the job's runtime environment
+                env = {"env_vars": worker_env()}
+                ray.init(address=address, log_to_driver=False, runtime_env=env)
             else:
-                ray.init(num_cpus=self.workers, include_dashboard=False, log_to_driver=False, **env)
+                with _spawn_env(worker_env()):  # the local Ray's processes copy it
+                    ray.init(num_cpus=self.workers, include_dashboard=False, log_to_driver=False)
             self._started = True
         self._remote = ray.remote(num_cpus=1, memory=int(memory), max_retries=0)(_call_star)
         self._handles: dict[str, Any] = {}
