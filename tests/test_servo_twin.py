@@ -450,6 +450,32 @@ def test_the_operator_takes_the_object_again_after_a_miss(world):
     assert moved(0.2) < 0.002
 
 
+def _streamed_within_limits(world, steps, sent, lim) -> int:
+    """Assert the applied set-points ``steps`` ((t, q) per physics step, one run of physics)
+    and the controller's command streams ``sent`` (segments of (t, q), split where they
+    paused) within ``lim``'s velocity and acceleration limits; the commands checked."""
+    from mmpa.robot.limits import check_path
+
+    dt = world.model.opt.timestep
+    t = np.array([s[0] for s in steps])
+    q = np.array([s[1] for s in steps])
+    assert np.allclose(np.diff(t), dt)  # one run of physics, no reset inside
+    v = np.diff(q, axis=0) / dt
+    a = np.diff(v, axis=0) / dt
+    assert np.abs(v).max() > 0.3  # it moved
+    assert np.all(np.abs(v) <= lim.qd_max * (1 + 1e-6)), (np.abs(v) / lim.qd_max).max()
+    assert np.all(np.abs(a) <= lim.qdd_max * (1 + 1e-6)), (np.abs(a) / lim.qdd_max).max()
+    n_checked = 0
+    for seg in sent:
+        ts = np.array([s[0] for s in seg])
+        cut = np.flatnonzero(np.diff(ts) > 0.1) + 1
+        for part in np.split(np.arange(len(seg)), cut):
+            if len(part) > 2:
+                check_path(ts[part], np.array([seg[i][1] for i in part]), lim, "command stream")
+                n_checked += len(part)
+    return n_checked
+
+
 def test_grasp_streams_within_the_joint_velocity_and_acceleration_limits(world, monkeypatch):
     """Issue 22: the set-points the physics applies (``d.ctrl`` of the arm's actuators,
     every 2 ms step) stay within qd_max and qdd_max through the whole trial, the grasp
@@ -458,8 +484,6 @@ def test_grasp_streams_within_the_joint_velocity_and_acceleration_limits(world, 
     closed within 1 cm of its true center. The default ``stream_accel_limit`` ("still")
     keeps the arm's stream acceleration-limited for a still object."""
     import mujoco
-
-    from mmpa.robot.limits import check_path
 
     arm = world.arm
     lim = arm.limits
@@ -492,26 +516,7 @@ def test_grasp_streams_within_the_joint_velocity_and_acceleration_limits(world, 
     assert arm.stream_acceleration_limited and g.limited
     assert row["grasped"], row
     assert np.hypot(row["close_dx"], row["close_dy"]) < 0.010, row
-    # the applied set-points, over consecutive physics steps
-    dt = world.model.opt.timestep
-    t = np.array([s[0] for s in steps])
-    q = np.array([s[1] for s in steps])
-    assert np.allclose(np.diff(t), dt)  # one run of physics, no reset inside
-    v = np.diff(q, axis=0) / dt
-    a = np.diff(v, axis=0) / dt
-    assert np.abs(v).max() > 0.3  # it moved
-    assert np.all(np.abs(v) <= lim.qd_max * (1 + 1e-6)), (np.abs(v) / lim.qd_max).max()
-    assert np.all(np.abs(a) <= lim.qdd_max * (1 + 1e-6)), (np.abs(a) / lim.qdd_max).max()
-    # the controller's streams: each command at its time, split where it paused
-    n_checked = 0
-    for seg in sent:
-        ts = np.array([s[0] for s in seg])
-        cut = np.flatnonzero(np.diff(ts) > 0.1) + 1
-        for part in np.split(np.arange(len(seg)), cut):
-            if len(part) > 2:
-                check_path(ts[part], np.array([seg[i][1] for i in part]), lim, "command stream")
-                n_checked += len(part)
-    assert n_checked > 50
+    assert _streamed_within_limits(world, steps, sent, lim) > 50
 
 
 def test_moving_ball_grasp_streams_within_the_limits_by_the_intercept(world, monkeypatch):
@@ -521,8 +526,6 @@ def test_moving_ball_grasp_streams_within_the_limits_by_the_intercept(world, mon
     (tracking and descent), and the set-points the physics applies (``d.ctrl``, every 2 ms
     step) and the controller's own command stream stay within qd_max and qdd_max."""
     import mujoco
-
-    from mmpa.robot.limits import check_path
 
     arm = world.arm
     lim = arm.limits
@@ -572,21 +575,4 @@ def test_moving_ball_grasp_streams_within_the_limits_by_the_intercept(world, mon
     assert row["reason"] in ("grasped", "missed", "dropped"), row
     assert calls["descend"] >= 1 and calls["intercept"] > 50, calls
     assert limited and all(limited)  # the arm's stream limiter stayed on
-    dt = world.model.opt.timestep
-    t = np.array([s[0] for s in steps])
-    q = np.array([s[1] for s in steps])
-    assert np.allclose(np.diff(t), dt)
-    v = np.diff(q, axis=0) / dt
-    a = np.diff(v, axis=0) / dt
-    assert np.abs(v).max() > 0.3  # it moved
-    assert np.all(np.abs(v) <= lim.qd_max * (1 + 1e-6)), (np.abs(v) / lim.qd_max).max()
-    assert np.all(np.abs(a) <= lim.qdd_max * (1 + 1e-6)), (np.abs(a) / lim.qdd_max).max()
-    n_checked = 0
-    for seg in sent:
-        ts = np.array([s[0] for s in seg])
-        cut = np.flatnonzero(np.diff(ts) > 0.1) + 1
-        for part in np.split(np.arange(len(seg)), cut):
-            if len(part) > 2:
-                check_path(ts[part], np.array([seg[i][1] for i in part]), lim, "command stream")
-                n_checked += len(part)
-    assert n_checked > 100
+    assert _streamed_within_limits(world, steps, sent, lim) > 100
