@@ -124,3 +124,49 @@ def test_executor_options_only_for_experiments_that_run_trials_on_one(toy, tmp_p
     assert res.exit_code == 2 and "one process" in res.output
     res = CliRunner().invoke(app, ["experiment", "toy", "--out", str(tmp_path), "--workers", "0"])
     assert res.exit_code == 2  # typer's min=1
+
+
+def test_compare_profile_runs_each_profile_and_tabulates_them(monkeypatch, tmp_path):
+    from mmpa.sim.error_model import ErrorModelConfig
+
+    mod = types.ModuleType("mmpa_toy_twin")
+
+    class Config(BaseModel):
+        seed: int = 0
+        trials: int | None = None
+        errors: ErrorModelConfig = ErrorModelConfig()
+
+    def run(cfg, ctx):  # a figure that follows the profile: the depth noise it models
+        sub = cfg.errors.camera.subpixel
+        rows = [{"trial": i, "v": sub * (i + 1)} for i in range(cfg.trials or 2)]
+        return rn.Outcome(rows, {"site": {"noise_px": sub}, "n": len(rows)}, "toy")
+
+    mod.Config, mod.run, mod.PAPER = Config, run, "a toy twin table"
+    monkeypatch.setitem(sys.modules, "mmpa_toy_twin", mod)
+    monkeypatch.setitem(rn.EXPERIMENTS, "toytwin", "mmpa_toy_twin")
+    out = rn.run_experiment("toytwin", tmp_path / "run", trials=3, compare=["reference", "harsh"])
+    assert out.summary["profile"] == "realistic"
+    for p, sub in (("reference", 0.08), ("harsh", 0.10)):  # DESIGN.md's subpixel per profile
+        s = json.loads((tmp_path / "run" / f"profile-{p}" / "summary.json").read_text())
+        assert s["profile"] == p and s["site"]["noise_px"] == pytest.approx(sub)
+        cfg = yaml.safe_load((tmp_path / "run" / f"profile-{p}" / "config.yaml").read_text())
+        assert cfg["trials"] == 3 and cfg["errors"]["profile"] == p
+    report = (tmp_path / "run" / "report.md").read_text()
+    assert "## Under other error model profiles" in report
+    line = next(x for x in report.splitlines() if x.startswith("| site.noise_px"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells == ["site.noise_px", "0.0800", "0.0800", "0.1000"]
+    assert "wall_seconds" not in report
+    # an experiment without a twin error model has nothing to compare: refused before it runs
+    plain = types.ModuleType("mmpa_toy_plain")
+
+    class Plain(BaseModel):
+        seed: int = 0
+        trials: int | None = None
+
+    plain.Config, plain.run, plain.PAPER = Plain, run, "plain"
+    monkeypatch.setitem(sys.modules, "mmpa_toy_plain", plain)
+    monkeypatch.setitem(rn.EXPERIMENTS, "toyplain", "mmpa_toy_plain")
+    with pytest.raises(ConfigError, match="no twin error model"):
+        rn.run_experiment("toyplain", tmp_path / "x", compare=["reference"])
+    assert not (tmp_path / "x").exists()

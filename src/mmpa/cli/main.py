@@ -182,6 +182,14 @@ def experiment(
     resume: Annotated[
         bool, typer.Option("--resume", help="Keep the finished trials in --out; run the rest.")
     ] = False,
+    compare_profile: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--compare-profile",
+            help="Also run under this error model profile (repeatable; into "
+            "OUT/profile-NAME) and print its figures beside this run's in report.md.",
+        ),
+    ] = None,
 ) -> None:
     """Reproduce a paper table or figure: writes results.csv, report.md, plots, config.yaml."""
     from mmpa.experiments.runner import EXPERIMENTS, run_experiment
@@ -210,6 +218,7 @@ def experiment(
                 executor=executor,
                 ray_address=ray_address,
                 resume=resume,
+                compare=compare_profile or (),
             )
     except MMPAError as e:
         fail(e)

@@ -133,6 +133,7 @@ def run_experiment(
     executor: str = "local",
     ray_address: str | None = None,
     resume: bool = False,
+    compare: Sequence[str] = (),
 ) -> Outcome:
     """Run experiment ``name`` and write its run folder (see the module docstring).
 
@@ -140,7 +141,10 @@ def run_experiment(
     errors....`` overrides apply on top); the summary and the report record the profile.
     ``workers``, ``executor`` (``local``/``ray``), ``ray_address``: where the trials run
     (experiments with ``PARALLEL_TRIALS``); ``resume``: keep the trials already finished in
-    ``out`` (same configuration but for ``trials``) and run the rest."""
+    ``out`` (same configuration but for ``trials``) and run the rest. ``compare``: error
+    model profiles to run the same experiment under as well (same seed, trials and
+    overrides), each into ``out/profile-NAME``; the report then ends with their summary
+    figures beside this run's (:func:`compare_profiles`)."""
     mod = experiment_module(name)
     parallel = getattr(mod, "PARALLEL_TRIALS", False)
     if not parallel and (workers != 1 or executor != "local" or ray_address or resume):
@@ -148,6 +152,10 @@ def run_experiment(
             f"experiment {name!r} runs its trials in one process: --workers, --executor, "
             "--ray-address and --resume apply to "
             + ", ".join(k for k, v in EXPERIMENTS.items() if _parallel(v))
+        )
+    if compare and "errors" not in mod.Config.model_fields:
+        raise ConfigError(
+            f"experiment {name!r} runs no twin error model: --compare-profile is moot"
         )
     sets = []
     if profile is not None:
@@ -190,8 +198,50 @@ def run_experiment(
     head = f"# mmpa experiment {name}\n\nReproduces {mod.PAPER}.\n\n"
     if errors is not None:
         head += f"Twin error model: profile `{errors.profile}` (seed {errors.seed}).\n\n"
-    (out / "report.md").write_text(head + outcome.report.rstrip() + "\n")
+    report = head + outcome.report.rstrip() + "\n"
+    (out / "report.md").write_text(report)
+    if compare:
+        others = {}
+        for p in compare:
+            sub = run_experiment(
+                name, out / f"profile-{p}", seed=seed, trials=trials, profile=p,
+                config=config, overrides=overrides, workers=workers, executor=executor,
+                ray_address=ray_address, resume=resume,
+            )  # fmt: skip
+            others[p] = sub.summary
+        table = compare_profiles(errors.profile, outcome.summary, others)
+        (out / "report.md").write_text(report + table)
     return outcome
+
+
+def flatten(d: Any, prefix: str = "") -> dict[str, float]:
+    """The numeric leaves of a nested summary as dotted names (``None``: NaN)."""
+    out: dict[str, float] = {}
+    if isinstance(d, dict):
+        for k, v in d.items():
+            out.update(flatten(v, f"{prefix}{k}."))
+    elif d is None:
+        out[prefix[:-1]] = math.nan
+    elif isinstance(d, int | float) and not isinstance(d, bool):
+        out[prefix[:-1]] = float(d)
+    return out
+
+
+def compare_profiles(profile: str, summary: dict, others: dict[str, dict]) -> str:
+    """A Markdown section: every numeric summary figure of this run (under ``profile``)
+    beside the same figure of the runs under the ``others`` profiles (name -> summary);
+    the run's wall time left out."""
+    mine = flatten(_jsonable(summary))
+    theirs = {p: flatten(_jsonable(s)) for p, s in others.items()}
+    keys = [k for k in mine if k != "wall_seconds"]
+    rows = [[k, mine[k], *(t.get(k, math.nan) for t in theirs.values())] for k in keys]
+    cols = [f"`{profile}` (this run)", *(f"`{p}`" for p in theirs)]
+    folders = ", ".join(f"`profile-{p}/`" for p in theirs)
+    return (
+        f"\n## Under other error model profiles\n\nThe same experiment (seed, trials, "
+        f"overrides) under each profile, in {folders}:\n\n"
+        + markdown_table(["figure", *cols], rows, digits=4)
+    )
 
 
 def _parallel(module_path: str) -> bool:

@@ -58,6 +58,7 @@ from mmpa.errors import ConfigError, MMPAError
 from mmpa.experiments.runner import (
     EXPERIMENTS,
     experiment_module,
+    flatten,
     markdown_table,
     run_experiment,
     write_csv,
@@ -299,7 +300,7 @@ def point_metrics(experiment: str, summary: dict[str, Any], wanted: Sequence[str
     named in ``wanted`` (a dotted name or its last parts: ``enhanced.err_pos_cm`` names
     ``methods.enhanced.err_pos_cm``), else :data:`DEFAULT_METRICS` of the experiment, else
     all but ``wall_seconds``. NaN stays NaN (JSON ``null`` reads as NaN)."""
-    flat = _flatten(summary)
+    flat = flatten(summary)
     names = wanted if wanted is not None else DEFAULT_METRICS.get(experiment)
     if names is None:
         return {k: v for k, v in flat.items() if k != "wall_seconds"}
@@ -316,7 +317,7 @@ def _check_metrics(spec: SweepSpec, summaries: dict[str, dict[str, Any]]) -> Non
     experiment of ``spec`` has a finished point (``summaries``: experiment -> its first)."""
     if not spec.metrics or set(summaries) != set(spec.experiments):
         return
-    leaves = sorted({k for s in summaries.values() for k in _flatten(s)})
+    leaves = sorted({k for s in summaries.values() for k in flatten(s)})
     missing = [m for m in spec.metrics if not any(_names(k, m) for k in leaves)]
     if missing:
         raise ConfigError(
@@ -503,18 +504,6 @@ def _is_mapping(ann: Any) -> bool:
 
 def _is_profile(override: str) -> bool:
     return override.split("=", 1)[0].strip().split(".")[-1] == "profile"
-
-
-def _flatten(d: Any, prefix: str = "") -> dict[str, float]:
-    out: dict[str, float] = {}
-    if isinstance(d, dict):
-        for k, v in d.items():
-            out.update(_flatten(v, f"{prefix}{k}."))
-    elif d is None:
-        out[prefix[:-1]] = math.nan
-    elif isinstance(d, int | float) and not isinstance(d, bool):
-        out[prefix[:-1]] = float(d)
-    return out
 
 
 def _text(v: Any) -> str:
