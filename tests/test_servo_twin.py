@@ -450,6 +450,38 @@ def test_the_operator_takes_the_object_again_after_a_miss(world):
     assert moved(0.2) < 0.002
 
 
+def _record_streams(world, monkeypatch):
+    """Record, until ``monkeypatch.undo()``, the arm's applied set-points ``steps`` ((t,
+    d.ctrl) per physics step), the commands streamed to it ``sent`` (segments of (t, q); a
+    planned move ends one) and, per command, whether the arm's stream was acceleration
+    limited (``limited``)."""
+    import mujoco
+
+    arm = world.arm
+    steps: list[tuple[float, np.ndarray]] = []
+    sent: list[list[tuple[float, np.ndarray]]] = [[]]
+    limited: list[bool] = []
+    real_step, real_command, real_move = mujoco.mj_step, arm.command, arm.move_joints
+
+    def recording_step(m, d):
+        steps.append((float(d.time), d.ctrl[world._arm_act].copy()))
+        real_step(m, d)
+
+    def command(q):
+        sent[-1].append((world.time, np.array(q, float)))
+        limited.append(arm.stream_acceleration_limited)
+        real_command(q)
+
+    def move_joints(*a, **k):  # a planned move (e.g. the lift) ends the stream
+        sent.append([])
+        real_move(*a, **k)
+
+    monkeypatch.setattr(mujoco, "mj_step", recording_step)
+    monkeypatch.setattr(arm, "command", command)
+    monkeypatch.setattr(arm, "move_joints", move_joints)
+    return steps, sent, limited
+
+
 def _streamed_within_limits(world, steps, sent, lim) -> int:
     """Assert the applied set-points ``steps`` ((t, q) per physics step, one run of physics)
     and the controller's command streams ``sent`` (segments of (t, q), split where they
@@ -483,33 +515,11 @@ def test_grasp_streams_within_the_joint_velocity_and_acceleration_limits(world, 
     command at its time), and the grasp still holds the ball (physics) with the gripper
     closed within 1 cm of its true center. The default ``stream_accel_limit`` ("still")
     keeps the arm's stream acceleration-limited for a still object."""
-    import mujoco
-
     arm = world.arm
     lim = arm.limits
     assert np.array_equal(arm.stream_limits.qdd_max, lim.qdd_max)  # the stream keeps them
-    steps: list[tuple[float, np.ndarray]] = []
-    real_step = mujoco.mj_step
-
-    def recording_step(m, d):
-        steps.append((float(d.time), d.ctrl[world._arm_act].copy()))
-        real_step(m, d)
-
-    sent: list[list[tuple[float, np.ndarray]]] = [[]]
-    real_command, real_move = arm.command, arm.move_joints
-
-    def command(q):
-        sent[-1].append((world.time, np.array(q, float)))
-        real_command(q)
-
-    def move_joints(*a, **k):  # a planned move ends the stream
-        sent.append([])
-        real_move(*a, **k)
-
     g = make_grasper(Config(weights="oracle"), world)
-    monkeypatch.setattr(mujoco, "mj_step", recording_step)
-    monkeypatch.setattr(arm, "command", command)
-    monkeypatch.setattr(arm, "move_joints", move_joints)
+    steps, sent, _ = _record_streams(world, monkeypatch)
     row = grasp_trial(world, g, "tennis_ball", "normal", np.random.default_rng(0))
     monkeypatch.undo()
     assert g.cfg.stream_accel_limit == "still"  # the default: limited for a still object
@@ -525,30 +535,8 @@ def test_moving_ball_grasp_streams_within_the_limits_by_the_intercept(world, mon
     arm's own limiter never switched off), follows the object by the online intercept
     (tracking and descent), and the set-points the physics applies (``d.ctrl``, every 2 ms
     step) and the controller's own command stream stay within qd_max and qdd_max."""
-    import mujoco
-
     arm = world.arm
     lim = arm.limits
-    steps: list[tuple[float, np.ndarray]] = []
-    real_step = mujoco.mj_step
-
-    def recording_step(m, d):
-        steps.append((float(d.time), d.ctrl[world._arm_act].copy()))
-        real_step(m, d)
-
-    sent: list[list[tuple[float, np.ndarray]]] = [[]]
-    limited: list[bool] = []
-    real_command, real_move = arm.command, arm.move_joints
-
-    def command(q):
-        sent[-1].append((world.time, np.array(q, float)))
-        limited.append(arm.stream_acceleration_limited)
-        real_command(q)
-
-    def move_joints(*a, **k):  # a planned move (the lift) ends the stream
-        sent.append([])
-        real_move(*a, **k)
-
     servo = GraspConfig(stream_accel_limit="intercept", max_attempts=1)
     g = make_grasper(Config(weights="oracle", use_predictor=True, servo=servo), world)
     calls = {"intercept": 0, "descend": 0}
@@ -564,9 +552,7 @@ def test_moving_ball_grasp_streams_within_the_limits_by_the_intercept(world, mon
 
     monkeypatch.setattr(g, "_send_intercept", send_intercept)
     monkeypatch.setattr(g, "_descend_intercept", descend_intercept)
-    monkeypatch.setattr(mujoco, "mj_step", recording_step)
-    monkeypatch.setattr(arm, "command", command)
-    monkeypatch.setattr(arm, "move_joints", move_joints)
+    steps, sent, limited = _record_streams(world, monkeypatch)
     rng = np.random.default_rng([0, 100])
     row = grasp_trial(world, g, "tennis_ball", "normal", rng, speed=0.1, others=1)
     monkeypatch.undo()
