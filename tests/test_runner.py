@@ -144,7 +144,10 @@ def test_compare_profile_runs_each_profile_and_tabulates_them(monkeypatch, tmp_p
     mod.Config, mod.run, mod.PAPER = Config, run, "a toy twin table"
     monkeypatch.setitem(sys.modules, "mmpa_toy_twin", mod)
     monkeypatch.setitem(rn.EXPERIMENTS, "toytwin", "mmpa_toy_twin")
-    out = rn.run_experiment("toytwin", tmp_path / "run", trials=3, compare=["reference", "harsh"])
+    out = rn.run_experiment(
+        "toytwin", tmp_path / "run", trials=3, overrides=["errors.profile=realistic"],
+        compare=["reference", "harsh"],
+    )  # fmt: skip
     assert out.summary["profile"] == "realistic"
     for p, sub in (("reference", 0.08), ("harsh", 0.10)):  # DESIGN.md's subpixel per profile
         s = json.loads((tmp_path / "run" / f"profile-{p}" / "summary.json").read_text())

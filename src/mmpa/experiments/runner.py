@@ -202,10 +202,12 @@ def run_experiment(
     (out / "report.md").write_text(report)
     if compare:
         others = {}
+        # the other runs' profile is theirs: an ``errors.profile`` override would win over it
+        keep = [o for o in overrides if o.split("=", 1)[0].strip() != "errors.profile"]
         for p in compare:
             sub = run_experiment(
                 name, out / f"profile-{p}", seed=seed, trials=trials, profile=p,
-                config=config, overrides=overrides, workers=workers, executor=executor,
+                config=config, overrides=keep, workers=workers, executor=executor,
                 ray_address=ray_address, resume=resume,
             )  # fmt: skip
             others[p] = sub.summary
