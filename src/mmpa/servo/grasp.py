@@ -1258,6 +1258,26 @@ class TrackingGrasp:
         k = np.round((now - target) / np.pi)
         return target + k * np.pi
 
+    def _vertical_limits(
+        self, q_a: Array, q_b: Array, qd_max: Array, qdd_max: Array
+    ) -> tuple[float, float]:
+        """The vertical TCP speed (m/s) and acceleration (m/s^2) of a descent between the
+        joint poses ``q_a`` and ``q_b`` (6,) that keep every joint within
+        ``descend_joint_margin`` of ``qd_max`` / ``qdd_max`` (6,) at both ends, capped at
+        ``descend_speed`` / ``descend_accel``: with ``u = max(|J^+ e_z|)`` over the two poses
+        (the joint rates of a unit vertical TCP speed), ``v_z = min(descend_speed, m
+        min(qd_max / u))`` and alike for the acceleration."""
+        cfg, dh = self.cfg, self.robot.arm.dh
+        u = np.zeros(6)
+        for q_ in (q_a, q_b):
+            J = jacobian(dh, q_, self._T_ft)
+            u = np.maximum(u, np.abs(np.linalg.pinv(J) @ np.array([0, 0, 1.0, 0, 0, 0])))
+        with np.errstate(divide="ignore"):
+            m = cfg.descend_joint_margin
+            v_z = min(cfg.descend_speed, m * float(np.min(qd_max / u)))
+            a_z = min(cfg.descend_accel, m * float(np.min(qdd_max / u)))
+        return v_z, a_z
+
     def _descend(
         self,
         arm: Any,
@@ -1308,14 +1328,7 @@ class TrackingGrasp:
         # the vertical profile the joints can give: J^+ e_z at the start and the end pose
         T_end = make_T(R, np.array([T0[0, 3], T0[1, 3], zg])) @ inv(self._T_ft)
         q_end = ik_nearest(dh, T_end, q_cmd, q_min, q_max)
-        u = np.zeros(6)
-        for q_ in (q_cmd, q_end):
-            J = jacobian(dh, q_, self._T_ft)
-            u = np.maximum(u, np.abs(np.linalg.pinv(J) @ np.array([0, 0, 1.0, 0, 0, 0])))
-        with np.errstate(divide="ignore"):
-            m = cfg.descend_joint_margin
-            v_z = min(cfg.descend_speed, m * float(np.min(qd_descend / u)))
-            a_z = min(cfg.descend_accel, m * float(np.min(lim.qdd_max / u)))
+        v_z, a_z = self._vertical_limits(q_cmd, q_end, qd_descend, lim.qdd_max)
         if not self.limited:  # at constant speed (the joints' speed scaled into qd_max)
             v_z, a_z = cfg.descend_speed, np.inf
         t_down, ramp = ramp_profile(abs(z0 - zg), v_z, a_z)
@@ -1457,14 +1470,7 @@ class TrackingGrasp:
         z0 = float(T0[2, 3])
         T_end = make_T(_tool_down(yaw), np.array([T0[0, 3], T0[1, 3], zg])) @ inv(self._T_ft)
         q_end = ik_nearest(dh, T_end, q_cmd, self._q_lo, self._q_hi)
-        u = np.zeros(6)
-        for q_ in (q_cmd, q_end):
-            J = jacobian(dh, q_, self._T_ft)
-            u = np.maximum(u, np.abs(np.linalg.pinv(J) @ np.array([0, 0, 1.0, 0, 0, 0])))
-        with np.errstate(divide="ignore"):
-            m = cfg.descend_joint_margin
-            v_z = min(cfg.descend_speed, m * float(np.min(self._ilim.qd_max / u)))
-            a_z = min(cfg.descend_accel, m * float(np.min(self._ilim.qdd_max / u)))
+        v_z, a_z = self._vertical_limits(q_cmd, q_end, self._ilim.qd_max, self._ilim.qdd_max)
         t_down, ramp = ramp_profile(abs(z0 - zg), v_z, a_z)
         sign = float(np.sign(zg - z0))
         n_max = max(n_max, int(np.ceil((t_down + cfg.settle_max) / dt)))
