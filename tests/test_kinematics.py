@@ -136,6 +136,11 @@ def test_fk_batched_and_tool_point() -> None:
     assert F.shape == (7, 7, 4, 4)
     np.testing.assert_allclose(F[:, 0], np.broadcast_to(np.eye(4), (7, 4, 4)))
     np.testing.assert_allclose(F[:, 6], Tb, atol=1e-15)
+    # each link in its parent's frame: the step between consecutive link frames
+    A = K.link_steps(DH, Q)
+    assert A.shape == (7, 6, 4, 4)
+    for i in range(6):
+        np.testing.assert_allclose(A[:, i], np.linalg.inv(F[:, i]) @ F[:, i + 1], atol=1e-12)
 
 
 def test_fk_theta_offset_shifts_joint() -> None:

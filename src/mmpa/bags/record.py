@@ -51,7 +51,7 @@ from mmpa.bags import messages as rm
 from mmpa.bags.writer import BagWriter
 from mmpa.errors import InvalidInputError, MMPAError
 from mmpa.geometry import Array, inv, se2_to_T
-from mmpa.robot.kinematics import _dh_matrices
+from mmpa.robot.kinematics import link_steps
 
 if TYPE_CHECKING:  # pragma: no cover
     from mmpa.localization.maps import OccupancyGrid
@@ -118,7 +118,6 @@ class Recorder:
         self.joint_period_s: float | None = None
         self._last_arm = -np.inf
         self._hooked = False
-        self._dh: tuple[Array, Array, Array, Array] | None = None
         self._pending: list[tuple[float, Array, Array, Array]] = []
         self._offset = 0.0
         self._last = 0.0
@@ -244,7 +243,7 @@ class Recorder:
         t, q, qd, T_tcp = state
         F = rm.FRAMES
         self.writer.write(TOPICS["joint_states"], rm.joint_state(t, JOINT_NAMES, q, qd))
-        A = self._link_steps(q)
+        A = link_steps(self._world.nominal.arm.dh, q)  # each link in its parent's frame
         parents = [F["arm_base"], *ARM_FRAMES[:-1]]
         tfs = [rm.transform_stamped(t, parents[i], ARM_FRAMES[i], A[i]) for i in range(6)]
         self.writer.write(TOPICS["tf"], rm.tf_message(tfs), t)
@@ -270,15 +269,6 @@ class Recorder:
             self._write_arm(state, T_base)
         else:
             self.writer.write(TOPICS["truth_base"], rm.pose_stamped(t, rm.FRAMES["map"], T_base))
-
-    def _link_steps(self, q: Array) -> Array:
-        """(6, 4, 4): each DH link's pose in its parent's frame, ``A_i(q_i)`` of the NOMINAL
-        arm (``link_transforms`` is their running product)."""
-        if self._dh is None:
-            a, d, alpha, off = self._world.nominal.arm.dh.as_arrays()
-            self._dh = (a, d, alpha, off)
-        a, d, alpha, off = self._dh
-        return _dh_matrices(np.asarray(q, float) + off, d, a, alpha)
 
     def on_arm(self) -> None:
         """The arm's state now (the stepping hook calls it; the base's true pose comes with

@@ -36,6 +36,7 @@ __all__ = [
     "ik_refine",
     "is_ur_structure",
     "jacobian",
+    "link_steps",
     "link_transforms",
     "manipulability",
     "manipulability_q",
@@ -109,6 +110,16 @@ def _dh_one_inv(theta: float, d: float, a: float, alpha: float) -> Array:
     )
 
 
+def link_steps(dh: DHParameters, q: ArrayLike) -> Array:
+    """Each link's frame in its parent's: ``A_i(q_i) = T_(i-1)_i`` for ``i = 1..6``.
+
+    ``q``: joint angles (rad), shape ``(6,)`` or batched ``(N, 6)``. Returns ``(6, 4, 4)``
+    (or ``(N, 6, 4, 4)``); :func:`link_transforms` is their running product."""
+    q = _as_q(q)
+    a, d, alpha, off = dh.as_arrays()
+    return _dh_matrices(q + off, d, a, alpha)
+
+
 def link_transforms(dh: DHParameters, q: ArrayLike) -> Array:
     """Frames of all links: ``T_arm_base_i = A_1 ... A_i`` for ``i = 0..6``.
 
@@ -116,10 +127,8 @@ def link_transforms(dh: DHParameters, q: ArrayLike) -> Array:
     (or ``(N, 7, 4, 4)``); index 0 is the identity (``arm_base``), index 6 the ``flange``.
     Frame ``i`` carries joint ``i + 1``'s axis as its z axis (standard DH).
     """
-    q = _as_q(q)
-    a, d, alpha, off = dh.as_arrays()
-    A = _dh_matrices(q + off, d, a, alpha)
-    F = np.empty((*q.shape[:-1], 7, 4, 4))
+    A = link_steps(dh, q)
+    F = np.empty((*A.shape[:-3], 7, 4, 4))
     F[..., 0, :, :] = np.eye(4)
     for i in range(6):
         F[..., i + 1, :, :] = F[..., i, :, :] @ A[..., i, :, :]
