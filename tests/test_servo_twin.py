@@ -199,21 +199,27 @@ def test_a_grasp_cell_run_alone_repeats_its_trials_in_the_full_table(tmp_path):
         run_experiment("grasp", tmp_path / "bad", trials=1, overrides=["lighting=[twilight]"])
 
 
-def test_a_tracking_trial_does_not_depend_on_the_speeds_run_before_it(tmp_path):
+def test_a_tracking_trial_is_the_same_alone_and_on_two_workers(tmp_path):
     """Tracking trials are seeded per speed and trial (``set_episode`` for the sensors): the
-    0.1 m/s trial is the same, to the float, whether a 0.05 m/s trial ran before it or not
-    (before, the operator's turns and the scenes came from one stream per run)."""
+    0.1 m/s trial run alone in this process is the same, to the float, as inside a run of
+    two speeds on two worker processes (``--workers 2``; before, the operator's turns and the
+    scenes came from one stream per run)."""
     from mmpa.experiments.runner import run_experiment
 
     keys = ("grasped", "ticks", "lost_ticks", "close_dx", "close_dy", "time_to_grasp")
     common = ["predictor=[true]", "weights=oracle"]
     both = run_experiment(
-        "tracking", tmp_path / "both", trials=1, overrides=["speeds=[0.05,0.1]", *common]
+        "tracking",
+        tmp_path / "both",
+        trials=1,
+        overrides=["speeds=[0.05,0.1]", *common],
+        workers=2,
     )
     alone = run_experiment(
         "tracking", tmp_path / "alone", trials=1, overrides=["speeds=[0.1]", *common]
     )
     a, b = alone.rows[0], both.rows[1]
+    assert both.summary["executor"] == "local x2"
     assert a["speed"] == b["speed"] == 0.1
     assert a["ticks"] > 10  # the arm tracked the moving ball
     assert {k: a[k] for k in keys} == {k: b[k] for k in keys}

@@ -419,6 +419,70 @@ def make_grasper(cfg: Any, world: Any = None) -> Any:
     return TrackingGrasp(det, default_robot(), gc)
 
 
+#: the runner may run this experiment's trials on an executor (``--workers``, ``--executor``)
+PARALLEL_TRIALS = True
+
+#: this process's twins for grasp trials (a worker keeps them between trials): the world per
+#: error model, the grasper per (world, grasp settings)
+_TWINS: dict[str, Any] = {}
+_GRASPERS: dict[str, Any] = {}
+
+
+def twin_for(cfg: Any) -> tuple[Any, Any]:
+    """This process's (world, grasper) for ``cfg`` (a grasp experiment :class:`Config`):
+    built on first use, then kept. Trials reseed the world themselves (``set_episode`` and
+    their own generator), so which trials ran in it before does not change a trial."""
+    from mmpa.sim.world import SimWorld
+
+    wkey = cfg.errors.model_dump_json()
+    if wkey not in _TWINS:
+        _TWINS[wkey] = SimWorld(site="0", errors=cfg.errors)
+    gkey = wkey + cfg.model_dump_json(exclude={"seed", "trials", "objects", "lighting"})
+    if gkey not in _GRASPERS:
+        _GRASPERS[gkey] = make_grasper(cfg, _TWINS[wkey])
+    return _TWINS[wkey], _GRASPERS[gkey]
+
+
+def clear_twins() -> None:
+    """Close the worlds this process keeps between trials."""
+    _GRASPERS.clear()
+    while _TWINS:
+        _TWINS.popitem()[1].close()
+
+
+def grasp_job(cfg_json: str, obj: str, light: str, t: int) -> dict[str, Any]:
+    """Trial ``t`` of the cell (``obj``, ``light``) (a worker job): its row. Every draw (scene,
+    sensor noise) from the trial's own seed, so a trial alone is the same as in the table."""
+    from mmpa.sim.world import SimWorld
+
+    cfg = Config.model_validate_json(cfg_json)
+    world, grasper = twin_for(cfg)
+    lights = list(SimWorld.LIGHTING)
+    cell = CLASSES.index(obj) * len(lights) + lights.index(light)
+    rng = np.random.default_rng([cfg.seed, cell, t])
+    world.set_episode(cell * 100_000 + t)
+    row = grasp_trial(world, grasper, obj, light, rng, others=cfg.others)
+    row["trial"] = t
+    return row
+
+
+def run_jobs(ctx: Context, jobs: list, stage: str) -> list[dict[str, Any]]:
+    """``jobs`` on ``ctx.executor`` (None: in this process): their rows in job order, each
+    with the trial's wall time ``trial_s`` and its worker's peak memory ``worker_rss_mb``."""
+    from mmpa.experiments.executor import SerialExecutor
+
+    ex = ctx.executor if ctx.executor is not None else SerialExecutor()
+    try:
+        recs = ex.run(jobs, lambda done, total, rec: ctx.progress(stage, done / total))
+    finally:
+        clear_twins()
+        if ctx.executor is None:
+            ex.close()
+    return [
+        {**r["result"], "trial_s": r["trial_s"], "worker_rss_mb": r["worker_rss_mb"]} for r in recs
+    ]
+
+
 def run(cfg: Config, ctx: Context, progress: Callable[[str, float], None] | None = None) -> Outcome:
     from mmpa.errors import UnknownNameError
     from mmpa.sim.world import SimWorld
@@ -430,23 +494,14 @@ def run(cfg: Config, ctx: Context, progress: Callable[[str, float], None] | None
         if li not in SimWorld.LIGHTING:
             raise UnknownNameError("lighting condition", li, list(SimWorld.LIGHTING))
     n = cfg.n_trials()
-    rows = []
-    total = len(cfg.objects) * len(cfg.lighting) * n
-    with SimWorld(site="0", errors=cfg.errors) as world:
-        grasper = make_grasper(cfg, world)
-        lights = list(world.LIGHTING)
-        for obj in cfg.objects:
-            for light in cfg.lighting:
-                for t in range(n):
-                    # every draw of a trial (scene, sensor noise) from its own seed: a cell
-                    # run alone repeats the same trials as in the full table
-                    cell = CLASSES.index(obj) * len(lights) + lights.index(light)
-                    rng = np.random.default_rng([cfg.seed, cell, t])
-                    world.set_episode(cell * 100_000 + t)
-                    row = grasp_trial(world, grasper, obj, light, rng, others=cfg.others)
-                    row["trial"] = t
-                    rows.append(row)
-                    ctx.progress("grasp", len(rows) / total)
+    cfg_json = cfg.model_dump_json()
+    jobs = [
+        ({"object": obj, "lighting": light, "trial": t}, grasp_job, (cfg_json, obj, light, t))
+        for obj in cfg.objects
+        for light in cfg.lighting
+        for t in range(n)
+    ]
+    rows = run_jobs(ctx, jobs, "grasp")
     table, summary = [], {}
     for obj in cfg.objects:
         line: list[Any] = [obj]

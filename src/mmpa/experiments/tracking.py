@@ -17,7 +17,7 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from mmpa.experiments.grasp import Config as GraspExperimentConfig
-from mmpa.experiments.grasp import grasp_trial, make_grasper
+from mmpa.experiments.grasp import grasp_trial, run_jobs, twin_for
 from mmpa.experiments.runner import Context, Outcome, markdown_table
 from mmpa.servo.grasp import GraspConfig
 from mmpa.sim.error_model import ErrorModelConfig
@@ -44,41 +44,45 @@ class Config(BaseModel):
         return 10 if self.trials is None else self.trials
 
 
-def run(cfg: Config, ctx: Context) -> Outcome:
-    from mmpa.sim.world import SimWorld
+#: the runner may run this experiment's trials on an executor (``--workers``, ``--executor``)
+PARALLEL_TRIALS = True
 
+
+def _grasp_config(cfg: Config, pred: bool) -> GraspExperimentConfig:
+    return GraspExperimentConfig(
+        weights=cfg.weights,
+        preprocess_dark=cfg.preprocess_dark,
+        use_predictor=pred,
+        max_time=cfg.max_time,
+        servo=cfg.servo,
+        errors=cfg.errors,
+    )
+
+
+def tracking_job(cfg_json: str, pred: bool, speed: float, t: int) -> dict[str, Any]:
+    """Trial ``t`` at ``speed`` m/s, with or without the predictor (a worker job): its row.
+    Every draw (scene, operator, sensor noise) from the trial's own seed: the same trial
+    with and without the predictor, whatever ran before it."""
+    cfg = Config.model_validate_json(cfg_json)
+    world, grasper = twin_for(_grasp_config(cfg, pred))
+    mm_s = round(1000 * speed)
+    rng = np.random.default_rng([cfg.seed, mm_s, t])
+    world.set_episode(mm_s * 1000 + t)
+    row = grasp_trial(world, grasper, cfg.object, cfg.lighting, rng, speed=speed, others=cfg.others)
+    row.update(trial=t, predictor=pred)
+    return row
+
+
+def run(cfg: Config, ctx: Context) -> Outcome:
     n = cfg.n_trials()
-    rows: list[dict[str, Any]] = []
-    total = len(cfg.speeds) * len(cfg.predictor) * n
-    with SimWorld(site="0", errors=cfg.errors) as world:
-        for pred in cfg.predictor:
-            gcfg = GraspExperimentConfig(
-                weights=cfg.weights,
-                preprocess_dark=cfg.preprocess_dark,
-                use_predictor=pred,
-                max_time=cfg.max_time,
-                servo=cfg.servo,
-            )
-            grasper = make_grasper(gcfg, world)
-            for speed in cfg.speeds:
-                for t in range(n):
-                    # every draw of a trial (scene, operator, sensor noise) from its own seed:
-                    # the same trial with and without the predictor, whatever ran before
-                    mm_s = round(1000 * speed)
-                    rng = np.random.default_rng([cfg.seed, mm_s, t])
-                    world.set_episode(mm_s * 1000 + t)
-                    row = grasp_trial(
-                        world,
-                        grasper,
-                        cfg.object,
-                        cfg.lighting,
-                        rng,
-                        speed=speed,
-                        others=cfg.others,
-                    )
-                    row.update(trial=t, predictor=pred)
-                    rows.append(row)
-                    ctx.progress("tracking", len(rows) / total)
+    cfg_json = cfg.model_dump_json()
+    jobs = [
+        ({"predictor": pred, "speed": speed, "trial": t}, tracking_job, (cfg_json, pred, speed, t))
+        for pred in cfg.predictor
+        for speed in cfg.speeds
+        for t in range(n)
+    ]
+    rows = run_jobs(ctx, jobs, "tracking")
     table, summary = [], {}
     for speed in cfg.speeds:
         paper = "yes" if speed < PAPER_LIMIT else "its limit" if speed == PAPER_LIMIT else "no"
