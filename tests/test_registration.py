@@ -502,3 +502,49 @@ def test_color_correlation_given_the_position_ignores_a_lighting_gradient() -> N
     assert abs(color_correlation(a, wrong, points=p)) < 0.15
     with pytest.raises(InvalidInputError):
         color_correlation(a, b, points=p[:10])
+
+
+def test_fine_motion_gate_lets_the_feature_matches_vote(monkeypatch) -> None:
+    """A coarse pose 6 cm off (FGR misled) from which the fine stage reaches the true pose:
+    the fixed gate (50 mm from the coarse pose) refuses the fine pose; the ``support`` gate
+    accepts it when the feature matches agree with it (the true matches), and refuses it
+    when they agree with the coarse pose instead (matches that point where ICP did not go)."""
+    import mmpa.registration.pipeline as pl
+
+    src, tgt = _pair(T_TRUE)
+    off = T_TRUE @ make_T(rpy_to_R(0.0, 0.0, 0.02), [0.06, 0.0, 0.0])
+    monkeypatch.setattr(pl, "fgr_solve", lambda *a, **k: off.copy())
+    fixed = register(src, tgt, CFG.model_copy(update={"fine_motion_gate": "fixed"}))
+    assert not fixed.ok and "fine stage moved" in fixed.reason
+    assert translation_error(T_TRUE, fixed.T) < 1.5e-3  # the fine stage itself was right
+    vote = CFG  # the default gate
+    assert vote.fine_motion_gate == "support"
+    r = register(src, tgt, vote)
+    _check(r, T_TRUE)
+    assert r.stages["fine_support"] >= 0.5 * r.stages["coarse_support"]
+
+    def matches_of(T: np.ndarray):  # each source point's nearest target point under T
+        def corr(fs, ft, ps, pt, *a, **k):
+            from scipy.spatial import cKDTree
+
+            d, j = cKDTree(pt).query(ps @ T[:3, :3].T + T[:3, 3])
+            keep = np.nonzero(d < 0.01)[0]
+            return np.stack([keep, j[keep]], axis=1)
+
+        return corr
+
+    monkeypatch.setattr(pl, "fgr_correspondences", matches_of(off))
+    r = register(src, tgt, vote)
+    assert not r.ok and "fine stage moved" in r.reason
+    assert r.stages["fine_support"] < 0.5 * r.stages["coarse_support"]
+
+
+def test_feature_support_counts_matches_within_the_radius() -> None:
+    from mmpa.registration.pipeline import _feature_support
+
+    rng = np.random.default_rng(3)
+    ps, pt = rng.normal(size=(50, 3)), rng.normal(size=(60, 3))
+    corr = np.stack([rng.integers(0, 50, 200), rng.integers(0, 60, 200)], axis=1)
+    T = exp_se3(rng.normal(0, 0.3, 6))
+    brute = sum(np.linalg.norm(T[:3, :3] @ ps[i] + T[:3, 3] - pt[j]) < 0.8 for i, j in corr)
+    assert _feature_support(ps, pt, corr, 0.8)(T) == brute > 0

@@ -106,7 +106,15 @@ class RegistrationConfig(_Frozen):
         within ``max_init_shift``/``max_init_rotation_deg`` of a given ``init`` (tight on purpose: a
         single fine-scale ICP started several cm off can slide along the bench planes into a
         wrong minimum with normal fitness; measured on the twin, 8 cm off gave a 32 mm error
-        at fitness 0.79, so farther starts must use the global stage);
+        at fitness 0.79, so farther starts must use the global stage). Beyond the FGR pose's
+        limits, ``fine_motion_gate="support"`` (default) lets the feature matches vote: the
+        fine pose is kept when at least ``min_fine_support`` and ``min_fine_support_ratio``
+        times as many of FGR's correspondences lie within ``coarse_voxel`` of each other under
+        it as under the FGR pose (FGR misled by weak features is off by several cm and 10-30
+        deg on real frames while ICP finds the pose its matches agree with; an ICP that slid
+        along a repeated structure leaves the matches behind). ``"fixed"``: the motion limits
+        alone. Desk set (``benchmarks/bench_desk.py``): wide pairs refused 9 -> 2 of 87, none
+        wrong, the non-overlapping pairs all refused; twin robustness pairs unchanged;
         smallest eigenvalue of the per-correspondence information matrix of the ICP objective
         at least ``min_information`` (degenerate geometry: a plane, a cylinder...), where color
         gradients smaller than ``min_color_gradient`` (intensity per m) count as no texture;
@@ -163,6 +171,9 @@ class RegistrationConfig(_Frozen):
     max_fine_rotation_deg: float = Field(default=10.0, gt=0)
     max_init_shift: float = Field(default=0.02, gt=0)
     max_init_rotation_deg: float = Field(default=3.0, gt=0)
+    fine_motion_gate: Literal["fixed", "support"] = "support"
+    min_fine_support: int = Field(default=10, ge=0)
+    min_fine_support_ratio: float = Field(default=0.5, ge=0)
     min_information: float = Field(default=2e-3, ge=0)
     geometric_min_information: float = Field(default=1e-2, ge=0)
     min_color_gradient: float = Field(default=2.0, ge=0)

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import re
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -443,6 +444,20 @@ def fgr_correspondences(
     return pairs[np.concatenate(found).reshape(-1)].astype(np.int32)
 
 
+def _feature_support(src: Array, tgt: Array, corr: Array, radius: float) -> Callable[[Array], int]:
+    """``support(T)``: how many of the feature correspondences ``corr`` (K, 2) between the
+    coarse points ``src`` (N, 3) and ``tgt`` (M, 3) a pose ``T`` (4, 4) maps within
+    ``radius`` (m) of each other, ``|R p_s + t - p_t| < radius``."""
+    c = np.asarray(corr, dtype=np.int64).reshape(-1, 2)
+    ps, pt = src[c[:, 0]], tgt[c[:, 1]]
+
+    def support(T: Array) -> int:
+        d = ps @ T[:3, :3].T + T[:3, 3] - pt
+        return int(np.count_nonzero(np.einsum("ij,ij->i", d, d) < radius * radius))
+
+    return support
+
+
 def _centroid_motion(T_a: Array, T_b: Array, c: Array) -> tuple[float, float]:
     """Displacement (m) of point ``c`` and rotation angle (deg) between two poses."""
     d = float(np.linalg.norm((T_a[:3, :3] - T_b[:3, :3]) @ c + T_a[:3, 3] - T_b[:3, 3]))
@@ -618,10 +633,14 @@ def _register(
         stages["coarse_s"] = time.perf_counter() - t1
         scales = cfg.scales
         limits = (cfg.max_fine_shift, cfg.max_fine_rotation_deg, "coarse")
+        support = _feature_support(
+            np.asarray(src.coarse.points), np.asarray(tgt.coarse.points), corr, cfg.coarse_voxel
+        )
     else:
         T0 = init
         scales = cfg.init_scales
         limits = (cfg.max_init_shift, cfg.max_init_rotation_deg, "initial")
+        support = None
     stages["T_coarse"] = T0
     t1 = time.perf_counter()
     for sc in scales:  # the fine stage needs the target's normals
@@ -633,7 +652,9 @@ def _register(
     for j, colored in enumerate(methods):
         stages["method"] = "colored_icp" if colored else "point_to_plane_icp"
         prefix = "colored_" if j else ""
-        fine = _fine_stage(src, tgt, T0, scales, colored, cfg, stages, prefix, limits, init)
+        fine = _fine_stage(
+            src, tgt, T0, scales, colored, cfg, stages, prefix, limits, init, support
+        )
         if fine.ok:
             accepted = fine
         if fine.ok and (colored or fine.information >= cfg.geometric_min_information):
@@ -673,6 +694,7 @@ def _fine_stage(
     prefix: str,
     limits: tuple[float, float, str],
     init: Array | None,
+    support: Callable[[Array], int] | None = None,
 ) -> _Fine:
     """Multi-scale (colored or point-to-plane) ICP from ``T0`` and its acceptance checks."""
     try:
@@ -698,7 +720,15 @@ def _fine_stage(
     stages["max_rmse"] = max_rmse
     if rmse > max_rmse:
         return fail(f"inlier RMSE {rmse * 1e3:.2f} mm > {max_rmse * 1e3:.2f} mm")
-    if shift > max_shift or rot > max_rot:
+    moved = shift > max_shift or rot > max_rot
+    if moved and support is not None:
+        # the feature matches vote: how many agree with the fine pose, how many with FGR's
+        n_fine, n_coarse = support(T), support(T0)
+        stages[f"{prefix}fine_support"], stages[f"{prefix}coarse_support"] = n_fine, n_coarse
+        need = max(cfg.min_fine_support_ratio * n_coarse, cfg.min_fine_support)
+        if cfg.fine_motion_gate == "support" and n_fine >= need:
+            moved = False
+    if moved:
         return fail(
             f"fine stage moved {shift * 1e3:.1f} mm / {rot:.2f} deg from the "
             f"{what} pose (limits {max_shift * 1e3:.0f} mm / {max_rot:.1f} deg): "
