@@ -1,15 +1,20 @@
 """Overhead of recording a twin run to a ROS 2 bag (run on purpose:
-``python benchmarks/bench_record.py [--repeats N] [--view]``; ``--view``: the Foxglove live
-view with no client connected instead of a bag).
+``python benchmarks/bench_record.py [--repeats N] [--view | --demo]``; ``--view``: the
+Foxglove live view with no client connected instead of a bag; ``--demo``: the whole
+``mmpa demo`` instead of the drive below).
 
 The run: the demo's drive without the MMPA stage -- Site 0 -> Site 1 on the enhanced AMCL
-(``navigate``: scans at 10 Hz, control at 20 Hz), then ``CAPTURES`` RGB-D captures at the
-goal. It is timed (world construction excluded) without recording and with a
-:class:`mmpa.bags.Recorder` writing MCAP (every topic of the recorder, particle clouds of
-up to 100 poses), alternating, ``--repeats`` times each; the medians are compared with the
-target (recording adds <= 10 % wall time). Also checks that the recorded run IS the
-unrecorded run (same final true pose and estimate, bit for bit) and prints the bag's size
-and message counts. Always exits 0.
+(``navigate``: scans at 10 Hz, control at 20 Hz), then the arm's move to the bench view and
+``CAPTURES`` RGB-D captures at the goal. It is timed (world construction excluded) without
+recording and with a :class:`mmpa.bags.Recorder` writing MCAP as ``mmpa demo --record``
+does (every topic of the recorder, particle clouds of up to 100 poses, the arm's
+``/joint_states`` and ``/tf`` at :data:`mmpa.bags.record.ARM_RATE_HZ` through the whole
+run), alternating, ``--repeats`` times each; the medians are compared with the target
+(recording adds <= 10 % wall time). Also checks that the recorded run IS the unrecorded run
+(same final true pose, estimate and arm encoders, bit for bit; ``--demo``: the same summary
+but for wall times) and prints the bag's size and message counts, and the machine's load
+average (the wall times of a loaded machine scatter: the seconds spent in the recorder's
+hooks are the load-independent estimate). Always exits 0.
 """
 
 from __future__ import annotations
@@ -42,7 +47,9 @@ def _timed_hooks() -> None:
     load does to the wall time of the whole run)."""
     from mmpa.bags.record import Recorder
 
-    for name in ("on_scan", "on_odometry", "on_frame", "on_initial", "on_estimate", "write_map"):
+    names = ("on_scan", "on_odometry", "on_frame", "on_initial", "on_estimate", "write_map")
+    # the arm stream: sampled in the stepping hook (on_arm), written after each step
+    for name in (*names, "on_arm", "_flush_arm", "write_static"):
         f = getattr(Recorder, name)
 
         def timed(self, *a, _f=f, **k):
@@ -55,12 +62,12 @@ def _timed_hooks() -> None:
         setattr(Recorder, name, timed)
 
 
-def one_run(
-    bag: Path | None, view: bool = False
-) -> tuple[float, np.ndarray, np.ndarray, dict[str, int]]:
-    """Wall seconds of the drive + captures, final truth, final estimate, sink counts.
-    ``view``: the sink is the Foxglove live view with no client instead of a bag."""
+def one_run(bag: Path | None, view: bool = False) -> tuple[float, tuple, dict[str, int]]:
+    """Wall seconds of the drive + arm move + captures, the run's outcome (final truth,
+    final estimate, final encoders), sink counts. ``view``: the sink is the Foxglove live
+    view with no client instead of a bag."""
     from mmpa.bags import BagWriter, Recorder
+    from mmpa.bags.record import ARM_RATE_HZ
     from mmpa.localization.localizer import make_localizer
     from mmpa.navigation.mission import NavigateConfig, navigate
     from mmpa.navigation.planner import CostMap
@@ -83,21 +90,49 @@ def one_run(
             writer = BagWriter(bag) if bag is not None else None
         w = world
         loc = make_localizer("enhanced", grid, laser_pose2d(world), np.random.default_rng(0))
+        rec = None
         if writer is not None:
-            rec = Recorder(writer, world)
+            rec = Recorder(writer, world, joint_rate_hz=ARM_RATE_HZ)
             w = rec.world()
             rec.write_map(grid)
             loc = rec.localizer(loc)
         loc.initialize(rough_initial_pose(world))
         res = navigate(w, loc, grid, goal, cfg, costmap=costmap)
+        w.arm.move_joints(np.asarray(world.nominal.arm.view_bench))
         for _ in range(CAPTURES):
             w.camera.capture()
         counts = {}
+        if rec is not None:
+            rec.close()
         if writer is not None:
             writer.close()
             counts = dict(writer.counts)
         wall = time.perf_counter() - t0
-        return wall, res.final_truth, res.final_estimate, counts
+        outcome = (res.final_truth, res.final_estimate, world.arm.joint_positions())
+        return wall, outcome, counts
+
+
+#: summary entries that are wall times or name the bag (not the run)
+DEMO_SKIP = {"bag", "bag_messages", "wall_seconds", "capture_seconds", "mmpa_ipe_compute_s"}
+
+
+def one_demo(bag: Path | None, out: Path) -> tuple[float, dict, dict[str, int]]:
+    """Wall seconds of ``mmpa demo`` (``run_demo``, all of it: world, teaching, drive, MMPA,
+    capture, files), its summary less wall times, the bag's counts."""
+    from mmpa.backends.bag import bag_topics
+    from mmpa.experiments.demo import DemoConfig, run_demo
+
+    t0 = time.perf_counter()
+    summary = run_demo(DemoConfig(), out, record=bag)
+    wall = time.perf_counter() - t0
+    counts = {k: v[1] for k, v in bag_topics(bag).items()} if bag is not None else {}
+    return wall, {k: v for k, v in summary.items() if k not in DEMO_SKIP}, counts
+
+
+def _same(a: tuple | dict, b: tuple | dict) -> bool:
+    if isinstance(a, dict):
+        return a == b
+    return all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
 
 
 def main() -> None:
@@ -106,21 +141,29 @@ def main() -> None:
     ap.add_argument(
         "--view", action="store_true", help="measure the live view (no client) instead of a bag"
     )
+    ap.add_argument("--demo", action="store_true", help="time the whole `mmpa demo`")
     args = ap.parse_args()
     _timed_hooks()
     try:
         plain, recorded, hooks = [], [], []
+        print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
         with tempfile.TemporaryDirectory() as d:
             for i in range(args.repeats):
-                wall, truth0, est0, _ = one_run(None)
-                plain.append(wall)
                 bag = Path(d) / f"run{i}.mcap"
+                if args.demo:
+                    wall, out0, _ = one_demo(None, Path(d) / f"plain{i}")
+                else:
+                    wall, out0, _ = one_run(None)
+                plain.append(wall)
                 HOOK_SECONDS[0] = 0.0
-                wall, truth1, est1, counts = one_run(bag, view=args.view)
+                if args.demo:
+                    wall, out1, counts = one_demo(bag, Path(d) / f"rec{i}")
+                else:
+                    wall, out1, counts = one_run(bag, view=args.view)
                 recorded.append(wall)
                 hooks.append(HOOK_SECONDS[0])
                 size = 0 if args.view else bag.stat().st_size
-                same = np.array_equal(truth0, truth1) and np.array_equal(est0, est1)
+                same = _same(out0, out1)
                 print(
                     f"repeat {i}: plain {plain[-1]:.2f} s, recorded {recorded[-1]:.2f} s "
                     f"(in the recorder: {hooks[-1]:.2f} s), same run: {same}"
@@ -139,6 +182,7 @@ def main() -> None:
             f"(target <= {100 * TARGET_OVERHEAD:.0f} %): "
             f"{'OK' if over <= TARGET_OVERHEAD else 'ABOVE TARGET'}"
         )
+        print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     except Exception:  # a benchmark reports, it does not fail the caller
         traceback.print_exc()
 

@@ -23,13 +23,27 @@ RATE = 50.0  # Hz: the needle task's path rate (and the recorder's least joint r
 
 
 def _spied_run(db, record=None) -> dict:
-    """``run_task`` with spies: the captures and scans it read, the paths it executed."""
+    """``run_task`` with spies: the captures and scans it read, the paths it executed, the
+    parking localizer's estimates (stamp, pose after each update) and its final estimate."""
+    from mmpa.experiments import mmpa_common
     from mmpa.experiments.mmpa_twin import run_task
+    from mmpa.localization.enhanced import EnhancedAMCL
     from mmpa.sim.sensors import SimCamera, SimLidar
     from mmpa.sim.world import SimArm
 
-    seen: dict = {"captures": [], "scans": [], "follow": []}
+    seen: dict = {"captures": [], "scans": [], "follow": [], "updates": [], "parked": []}
     cap, scan, follow = SimCamera.capture, SimLidar.scan, SimArm.follow
+    update, standing = EnhancedAMCL.update, mmpa_common.localize_standing
+
+    def spy_update(self, odom_pose, scan, force=False):
+        est = update(self, odom_pose, scan, force=force)
+        seen["updates"].append((scan.stamp, np.array(est.pose)))
+        return est
+
+    def spy_standing(world, loc, scans=5, scan_rate=10.0):
+        est = standing(world, loc, scans, scan_rate)
+        seen["parked"].append(np.array(est))
+        return est
 
     def spy_capture(self):
         f = cap(self)
@@ -51,6 +65,8 @@ def _spied_run(db, record=None) -> dict:
         mp.setattr(SimCamera, "capture", spy_capture)
         mp.setattr(SimLidar, "scan", spy_scan)
         mp.setattr(SimArm, "follow", spy_follow)
+        mp.setattr(EnhancedAMCL, "update", spy_update)
+        mp.setattr(mmpa_common, "localize_standing", spy_standing)
         seen["summary"] = run_task("needle_site1", db=db, record=record)
     return seen
 
@@ -100,6 +116,11 @@ def test_recorded_run_topics_types_and_counts(runs) -> None:
         "/truth/tcp_pose": "geometry_msgs/msg/PoseStamped",
         "/truth/camera_pose": "geometry_msgs/msg/PoseStamped",
         "/truth/reflectors": "visualization_msgs/msg/MarkerArray",
+        "/map": "nav_msgs/msg/OccupancyGrid",
+        "/reflectors": "visualization_msgs/msg/MarkerArray",
+        "/initialpose": "geometry_msgs/msg/PoseWithCovarianceStamped",
+        "/amcl_pose": "geometry_msgs/msg/PoseWithCovarianceStamped",
+        "/particlecloud": "geometry_msgs/msg/PoseArray",
     }
     assert types == expected
     # one colour / depth / info / camera truth per capture the run made (IPE's views)
@@ -130,7 +151,8 @@ def test_recorded_run_topics_types_and_counts(runs) -> None:
     }
     arm = [("arm_base", "link1"), *itertools.pairwise(ARM_FRAMES)]
     tf_pairs = {(ts.header.frame_id, ts.child_frame_id) for m in raw["/tf"] for ts in m.transforms}
-    assert set(arm) <= tf_pairs and ("odom", "base_link") in tf_pairs
+    assert set(arm) <= tf_pairs
+    assert ("odom", "base_link") in tf_pairs and ("map", "odom") in tf_pairs
     # the joint states: the 6 arm joints, sim-time stamps strictly increasing, no gap longer
     # than one period anywhere (every motion sampled at >= 50 Hz), count ~ duration x rate
     js = [rm.from_joint_state(m) for m in raw["/joint_states"]]
@@ -193,6 +215,51 @@ def test_recorded_joint_states_are_the_executed_joints(runs) -> None:
     assert 1e-5 < err < 0.01, err  # not the truth itself, but near it (2.6 mm measured)
 
 
+def test_recorded_run_has_the_map_and_the_parking_localization(runs) -> None:
+    """/map is the twin's map of this robot instance (built here in a world of its own);
+    /amcl_pose holds one estimate per localizer update, equal to what the localizer
+    returned (in the recorded run and in the unrecorded one), the last one being the
+    parking estimate handed to IPE."""
+    from mmpa.bags.localize import grid_from_bag
+    from mmpa.experiments.mmpa_common import MMPAExperimentConfig
+    from mmpa.sim.twin_maps import twin_map
+    from mmpa.sim.world import SimWorld
+
+    with SimWorld(errors=MMPAExperimentConfig().errors, site="1") as world:
+        grid = twin_map(world)
+    g = grid_from_bag(runs["bag"])
+    assert (g.width, g.height) == (grid.width, grid.height)
+    assert g.resolution == grid.resolution and g.origin == pytest.approx(grid.origin, abs=1e-12)
+    np.testing.assert_array_equal(g.data, grid.data)
+    np.testing.assert_allclose(g.reflectors, grid.reflectors, atol=1e-12)
+    raw = read_messages(runs["bag"], ["/amcl_pose", "/particlecloud", "/initialpose", "/map"])
+    assert len(raw["/map"]) == 1 and len(raw["/initialpose"]) == 1
+    est = [rm.from_pose_cov(m) for m in raw["/amcl_pose"]]
+    rec, plain = runs["rec"], runs["plain"]
+    assert len(est) == len(rec["updates"]) == len(plain["updates"]) == 5  # park_scans
+    assert len(raw["/particlecloud"]) == len(est)
+    # bag time is sim time shifted over the world's resets (kept monotonic): the estimates
+    # come 0.1 s apart in both, each at the bag time of the scan it used
+    t_bag = np.array([t for t, _, _ in est])
+    t_sim = np.array([t for t, _ in rec["updates"]])
+    assert [t for t, _ in plain["updates"]] == t_sim.tolist()
+    np.testing.assert_allclose(np.diff(t_bag), np.diff(t_sim), rtol=0, atol=1e-9)
+    scans = {
+        round(rm.from_laser_scan(m).stamp, 9)
+        for m in read_messages(runs["bag"], ["/scan"])["/scan"]
+    }
+    assert {round(t, 9) for t in t_bag} <= scans
+    for (_, pose, cov), (_, p_rec), (_, p_plain) in zip(
+        est, rec["updates"], plain["updates"], strict=True
+    ):
+        np.testing.assert_array_equal(p_rec, p_plain)
+        np.testing.assert_allclose(pose[:2], p_rec[:2], rtol=0, atol=1e-9)
+        assert abs((pose[2] - p_rec[2] + np.pi) % (2 * np.pi) - np.pi) < 1e-9
+        assert np.all(np.linalg.eigvalsh(cov) >= -1e-12)
+    (parked,) = rec["parked"]
+    np.testing.assert_allclose(est[-1][1][:2], parked[:2], rtol=0, atol=1e-9)
+
+
 def test_run_command_has_a_record_option() -> None:
     from typer.testing import CliRunner
 
@@ -239,3 +306,95 @@ def test_recorder_samples_a_move_and_unhooks(tmp_path) -> None:
     assert 0 < t[-1] - t[-2] <= 0.02 + 1e-9 and t[-1] == pytest.approx(t_end, abs=1e-9)
     np.testing.assert_array_equal(js[-1][2], q_end)
     assert np.abs(js[len(js) // 2][2] - q_end).max() > 0.01  # sampled while moving
+
+
+# --- mmpa demo / mmpa navigate: the arm at 50 Hz -------------------------------------------
+
+DEMO_SKIP = {"bag", "bag_messages", "wall_seconds", "capture_seconds"}  # the path, wall times
+
+
+def _spied_demo(out, record=None) -> dict:
+    """A short ``run_demo`` (no MMPA stage, a 3 s drive on the enhanced AMCL, then the
+    capture, whose arm move to the bench view is the motion under test), with a spy on the
+    simulator's ``move_joints``: (sim time before, after, encoders after) of every move."""
+    from mmpa.experiments.demo import DemoConfig, run_demo
+    from mmpa.sim.world import SimArm
+
+    moves: list = []
+    move = SimArm.move_joints
+
+    def spy_move(self, q, duration=None, settle=0.3):
+        t0 = self._w.time
+        move(self, q, duration, settle)
+        moves.append((t0, self._w.time, self.joint_positions()))
+
+    cfg = DemoConfig(mmpa_task=None, localization="enhanced", timeout=3.0)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(SimArm, "move_joints", spy_move)
+        summary = run_demo(cfg, out, record=record)
+    return {"summary": summary, "moves": moves}
+
+
+@pytest.fixture(scope="module")
+def demo_runs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("demo_record")
+    bag = d / "demo.mcap"
+    return {
+        "bag": bag,
+        "rec": _spied_demo(d / "rec", bag),
+        "plain": _spied_demo(d / "plain"),
+    }
+
+
+def test_recorded_demo_is_the_same_run(demo_runs) -> None:
+    rec, plain = demo_runs["rec"], demo_runs["plain"]
+    assert rec["summary"]["bag"] == str(demo_runs["bag"]) and rec["summary"]["bag_messages"] > 0
+    assert {k: v for k, v in rec["summary"].items() if k not in DEMO_SKIP} == {
+        k: v for k, v in plain["summary"].items() if k not in DEMO_SKIP
+    }
+    assert len(rec["moves"]) == len(plain["moves"]) == 1
+    for (a0, a1, qa), (b0, b1, qb) in zip(rec["moves"], plain["moves"], strict=True):
+        assert (a0, a1) == (b0, b1)
+        np.testing.assert_array_equal(qa, qb)
+
+
+def test_recorded_demo_streams_the_arm_at_50_hz(demo_runs) -> None:
+    """/joint_states every <= 20 ms of sim time from the start of the recording to its end
+    (the drive, the arm's move to the bench view, the capture); through the move the
+    samples follow the moving arm and the last one is the arm's encoders after it."""
+    raw = read_messages(demo_runs["bag"], ["/joint_states", "/tf"])
+    js = [rm.from_joint_state(m) for m in raw["/joint_states"]]
+    t = np.array([s[0] for s in js])
+    Q = np.array([s[2] for s in js])
+    dt = np.diff(t)
+    assert dt.min() > 0 and dt.max() <= 1.0 / RATE + 1e-9
+    ((t0, t1, q_end),) = demo_runs["rec"]["moves"]  # no reset: bag time is sim time
+    during = (t > t0) & (t <= t1 + 1e-9)
+    # a 20 ms grid, plus a sample at the end of each of the move's world steps
+    assert (t1 - t0) * RATE - 1e-6 <= during.sum() <= (t1 - t0) * RATE + 3
+    assert t[during][0] - t0 <= 1.0 / RATE + 1e-9 and t[during][-1] == pytest.approx(t1)
+    np.testing.assert_array_equal(Q[during][-1], q_end)
+    assert np.abs(Q[during][len(Q[during]) // 2] - q_end).max() > 0.01  # sampled while moving
+    # the arm's /tf comes with every joint state
+    arm_tf = [m for m in raw["/tf"] if m.transforms[0].child_frame_id == "link1"]
+    assert len(arm_tf) == len(js)
+
+
+def test_recorded_navigate_streams_the_arm_at_50_hz(tmp_path) -> None:
+    """``mmpa navigate --record``: the (resting) arm's /joint_states every 20 ms of the
+    drive, besides the scans, odometry and localization."""
+    from typer.testing import CliRunner
+
+    from mmpa.cli.main import app
+
+    bag = tmp_path / "nav.mcap"
+    args = ["navigate", "--to", "1", "--timeout", "2", "--record", str(bag)]
+    r = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+    assert r.exit_code in (0, 1), r.output  # 1: not reached within the 2 s
+    counts = {k: v[1] for k, v in bag_topics(bag).items()}
+    assert counts["/amcl_pose"] > 0 and counts["/map"] == 1
+    js = [rm.from_joint_state(m) for m in read_messages(bag, ["/joint_states"])["/joint_states"]]
+    t = np.array([s[0] for s in js])
+    assert np.diff(t).max() <= 1.0 / RATE + 1e-9
+    assert t[-1] - t[0] >= 2.0 - 1.0 / RATE  # the whole drive
+    assert len(js) >= 2.0 * RATE

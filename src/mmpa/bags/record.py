@@ -30,6 +30,9 @@ Topics (REP-105 frames, stamps = sim time; see :mod:`mmpa.bags.messages`):
 ``/truth/camera_pose``, ``/truth/reflectors``
 ==============================================  ==========================================
 
+``mmpa demo``, ``mmpa navigate``, ``mmpa run`` and ``mmpa experiment`` record with
+``joint_rate_hz`` = :data:`ARM_RATE_HZ` (a task's path rate when higher).
+
 The arm moves inside the simulator's ``step`` (``SimArm.move_joints`` and ``follow`` run the
 whole motion in one call), which no device wrapper sees. With ``joint_rate_hz`` the recorder
 therefore wraps the world's ``step`` on the instance (the class and the simulator are
@@ -57,7 +60,12 @@ if TYPE_CHECKING:  # pragma: no cover
     from mmpa.localization.maps import OccupancyGrid
     from mmpa.sim.world import SimWorld
 
-__all__ = ["ARM_FRAMES", "JOINT_NAMES", "TOPICS", "Recorder"]
+__all__ = ["ARM_FRAMES", "ARM_RATE_HZ", "JOINT_NAMES", "TOPICS", "Recorder"]
+
+#: Hz: the rate of the arm's ``/joint_states`` (and its ``/tf``) in the twin commands'
+#: recordings (``Recorder(joint_rate_hz=...)``; a recorded task runs at its path's rate when
+#: that is higher): a ROS 2 ``joint_state_broadcaster``'s usual rate
+ARM_RATE_HZ = 50.0
 
 JOINT_NAMES = [f"joint{i}" for i in range(1, 7)]
 #: frames of the DH chain ``arm_base`` -> ... -> ``flange`` (link_transforms indices 1..6)

@@ -190,6 +190,13 @@ def experiment(
             "OUT/profile-NAME) and print its figures beside this run's in report.md.",
         ),
     ] = None,
+    record: Annotated[
+        Path | None,
+        typer.Option(
+            help="Record every trial to its own ROS 2 bag in this folder "
+            "(<label>site-<site>-trial-<n>.mcap; the paper 000 twin experiments).",
+        ),
+    ] = None,
 ) -> None:
     """Reproduce a paper table or figure: writes results.csv, report.md, plots, config.yaml."""
     from mmpa.experiments.runner import EXPERIMENTS, run_experiment
@@ -219,6 +226,7 @@ def experiment(
                 ray_address=ray_address,
                 resume=resume,
                 compare=compare_profile or (),
+                record=record,
             )
     except MMPAError as e:
         fail(e)

@@ -96,9 +96,12 @@ def navigate_cmd(
             robot = world
             if record is not None:  # the same run, observed (mmpa.bags.Recorder)
                 from mmpa.bags import BagWriter, Recorder
+                from mmpa.bags.record import ARM_RATE_HZ
 
                 bag = stack.enter_context(BagWriter(record, overwrite=True))
-                recorder = Recorder(bag, world)
+                # /joint_states and the arm's /tf every 20 ms of sim time, as a robot's
+                # joint_state_broadcaster publishes them
+                recorder = stack.enter_context(Recorder(bag, world, joint_rate_hz=ARM_RATE_HZ))
                 robot = recorder.world()
                 recorder.write_map(grid)
                 loc = recorder.localizer(loc)

@@ -132,7 +132,9 @@ def run_demo(
     """Drive ``start_site`` -> ``goal_site``, capture, write the run folder; return the summary.
 
     ``record``: also record the run after teaching (the drive, MMPA, the capture) to this ROS 2
-    bag (``FILE.mcap`` or a rosbag2 folder; :class:`mmpa.bags.Recorder`). ``view``: serve the
+    bag (``FILE.mcap`` or a rosbag2 folder; :class:`mmpa.bags.Recorder`), the arm's
+    ``/joint_states`` and ``/tf`` every 20 ms of sim time (:data:`mmpa.bags.record.ARM_RATE_HZ`)
+    through the whole run, arm motions included. ``view``: serve the
     same topics live to Foxglove on ``ws://127.0.0.1:view`` (:class:`mmpa.bags.view.FoxgloveView`;
     0 picks a free port)."""
     out = Path(out)
@@ -152,6 +154,7 @@ def run_demo(
         recorder = None
         if record is not None or view is not None:
             from mmpa.bags import BagWriter, Recorder
+            from mmpa.bags.record import ARM_RATE_HZ
             from mmpa.bags.view import FoxgloveView, Tee
 
             sinks: list = []
@@ -162,7 +165,9 @@ def run_demo(
                 sinks.append(stack.enter_context(FoxgloveView(port=view)))
                 if progress:
                     progress(f"live view: open ws://127.0.0.1:{sinks[-1].port} in Foxglove", 0.0)
-            recorder = Recorder(sinks[0] if len(sinks) == 1 else Tee(*sinks), world)
+            sink = sinks[0] if len(sinks) == 1 else Tee(*sinks)
+            # the arm at 50 Hz through every motion (MMPA's path, the capture's view move)
+            recorder = stack.enter_context(Recorder(sink, world, joint_rate_hz=ARM_RATE_HZ))
             world = recorder.world()
         start = world.truth.base_pose2d()
         estimate = None

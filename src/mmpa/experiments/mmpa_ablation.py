@@ -22,6 +22,8 @@ from mmpa.experiments.mmpa_common import (
 from mmpa.experiments.runner import Context, Outcome, markdown_table
 
 PARALLEL_TRIALS = True
+#: every trial can record itself to a bag of its own (``mmpa experiment --record DIR``)
+RECORDS_TRIALS = True
 
 PAPER = "paper 000 Appendix A, Tables A.1-A.3 (alpha) and A.4-A.6 (beta)"
 

@@ -15,6 +15,8 @@ folder's ``taught/``), every trial runs in a site world built from that bundle a
 on its own (:meth:`TwinSite.begin_trial`: parking offset, camera session and frame noise,
 scene change, park estimates, from ``(errors.seed, stream, trial + 1)``), so a trial's row is
 the same alone, inside a run, or on another worker (:mod:`mmpa.experiments.executor`).
+Inside :func:`record_trials` (``mmpa experiment NAME --record DIR``) every trial also
+records itself to a ROS 2 bag of its own (:meth:`TwinSite.recording`), its row unchanged.
 """
 
 from __future__ import annotations
@@ -22,13 +24,16 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import re
 import shutil
 import tempfile
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -79,7 +84,9 @@ __all__ = [
     "TrialGroup",
     "TwinSite",
     "ipe_trials",
+    "record_trials",
     "run_trial_groups",
+    "trial_bag_name",
 ]
 
 #: which demonstration each site uses by default (Site 2' reuses the task taught at Site 2)
@@ -157,11 +164,15 @@ def localize_parked(
     guess: Array,
     rng: np.random.Generator,
     cfg: MMPAExperimentConfig,
+    wrap: Callable | None = None,
 ) -> Array:
     """The localization estimate ``[x, y, theta]`` of a parked robot: localizer ``method`` on
     ``grid``, initialized at ``guess`` (Nav2's initial covariance), run on ``cfg.park_scans``
-    scans while the base stands still (:func:`~mmpa.navigation.mission.localize_standing`)."""
+    scans while the base stands still (:func:`~mmpa.navigation.mission.localize_standing`).
+    ``wrap``: applied to the new localizer before use (a recorder's, to record it)."""
     loc = make_localizer(method, grid, laser_pose2d(w), rng)
+    if wrap is not None:
+        loc = wrap(loc)
     loc.initialize(np.asarray(guess, float))
     return localize_standing(w, loc, cfg.park_scans)
 
@@ -229,6 +240,8 @@ class TwinSite:
         self.world = SimWorld(self.scene, errors=cfg.errors, site=teach_site)
         self.rng = self.world.error_model.rng(f"mmpa_trials_{site}")
         self.T_map_base_estimate: Array | None = None  # localization estimate after parking
+        self.recorder: Any = None  # a mmpa.bags.Recorder while recording (:meth:`recording`)
+        self._map_recorded = False
         if task is None:
             demos = load_demonstrations()
             name = demo or SITE_DEMOS[site]
@@ -246,6 +259,49 @@ class TwinSite:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    @contextmanager
+    def recording(self, path: str | Path, joint_rate_hz: float | None = None) -> Iterator[Path]:
+        """Record what runs inside the ``with`` block to the ROS 2 bag ``path`` (``FILE.mcap``
+        or a rosbag2 folder; overwritten) with a :class:`mmpa.bags.Recorder`: the scans and
+        camera frames as the algorithms read them, ``/joint_states`` and the arm's ``/tf``
+        every ``1 / joint_rate_hz`` s through every arm motion (default: the task's path rate,
+        at least :data:`mmpa.bags.record.ARM_RATE_HZ`), ``/map`` and ``/reflectors``
+        (latched, the localizers' map, on the first localization), every localizer's
+        ``/initialpose``, ``/amcl_pose`` and ``/particlecloud`` (parking estimate, physics
+        parking, re-parks), ``/tf_static`` and the truth on ``/truth/...``.
+
+        :attr:`world` is the recording stand-in inside the block, the world itself again
+        after it. The recorder draws nothing and steps the same physics, so the run is the
+        run without recording. Yields ``path``."""
+        from mmpa.bags import BagWriter, Recorder
+        from mmpa.bags.record import ARM_RATE_HZ
+
+        if self.recorder is not None:
+            raise ConfigError(f"site {self.site!r} is being recorded already")
+        rate = joint_rate_hz or max(float(self.taught.task.path.rate_hz), ARM_RATE_HZ)
+        world = self.world
+        with (
+            BagWriter(path, overwrite=True) as bag,
+            Recorder(bag, world, joint_rate_hz=rate) as rec,
+        ):
+            self.world = rec.world()  # the same world, its readings recorded
+            self.recorder, self._map_recorded = rec, False
+            try:
+                yield Path(path)
+            finally:
+                self.world, self.recorder = world, None
+
+    def _recorded(self, loc: Any, grid: OccupancyGrid) -> Any:
+        """``loc`` recorded while :meth:`recording` (and the map, the first time); else
+        ``loc``."""
+        rec = self.recorder
+        if rec is None:
+            return loc
+        if not self._map_recorded:
+            rec.write_map(grid)
+            self._map_recorded = True
+        return rec.localizer(loc)
 
     def begin_trial(self, trial: int) -> None:
         """Seed trial ``trial`` (>= 0) on its own: the world's episode streams (camera and
@@ -290,6 +346,7 @@ class TwinSite:
         w.reset(site="0", pose2d=s0 + self.rng.normal(0, [sx, sx, sth]))
         w.set_speed_bump(w.scene.site(self.site).speed_bump)  # Site 2' drives onto the bump
         loc = make_localizer(self.cfg.localizer, grid, laser_pose2d(w), self.rng)
+        loc = self._recorded(loc, grid)
         loc.initialize(rough_initial_pose(w, self._loc_rng()))  # the operator's rough pose
         goal = w.scene.site(self.site).pose2d
         res = navigate(w, loc, grid, goal, NavigateConfig(), costmap=costmap)
@@ -344,7 +401,13 @@ class TwinSite:
         grid, _ = self._navigation()
         goal = self.world.scene.site(self.site).pose2d
         return localize_parked(
-            self.world, grid, self.cfg.localizer, goal, self._loc_rng(), self.cfg
+            self.world,
+            grid,
+            self.cfg.localizer,
+            goal,
+            self._loc_rng(),
+            self.cfg,
+            wrap=lambda loc: self._recorded(loc, grid),
         )
 
     def _navigation(self):
@@ -377,6 +440,7 @@ class TwinSite:
         if not hasattr(self, "_repark_rng"):  # its own stream: trials stay as they were
             self._repark_rng = w.error_model.rng(f"mmpa_repark_{self.site}")
         loc = make_localizer(self.cfg.localizer, grid, laser_pose2d(w), self._repark_rng)
+        loc = self._recorded(loc, grid)
         loc.initialize(est0)
         goal = se2_compose(est0, np.asarray(motion, float))
         nav = NavigateConfig()
@@ -637,14 +701,71 @@ def _cached_site(spec: dict, bundle: str | dict[str, bytes]) -> TwinSite:
     return ts
 
 
+@dataclass
+class _RecordTarget:
+    folder: Path
+    used: bool = False
+
+
+#: where the trials of :func:`run_trial_groups` record their bags (:func:`record_trials`)
+_RECORD: ContextVar[_RecordTarget | None] = ContextVar("mmpa_record_trials", default=None)
+
+
+@contextmanager
+def record_trials(folder: str | Path) -> Iterator[_RecordTarget]:
+    """Inside the ``with`` block, every trial run by :func:`run_trial_groups` records itself
+    (:meth:`TwinSite.recording`: parking, its localization, IPE, the executed paths) to its
+    own ROS 2 bag ``folder/<label>site-<site>-trial-<n>.mcap`` (:func:`trial_bag_name`),
+    written by the process that runs the trial (``folder`` is made absolute: workers on
+    other machines need it on a shared file system). The rows are those of a run without
+    recording. Yields a target whose ``used`` tells whether any trials were handed the
+    folder (``mmpa experiment --record`` refuses experiments that ran none)."""
+    target = _RecordTarget(Path(folder).resolve())
+    if target.folder.exists() and not target.folder.is_dir():
+        raise ConfigError(f"--record needs a folder for the trials' bags; {folder} is a file")
+    target.folder.mkdir(parents=True, exist_ok=True)
+    token = _RECORD.set(target)
+    try:
+        yield target
+    finally:
+        _RECORD.reset(token)
+
+
+def _record_spec() -> dict:
+    """The trial spec's ``record`` entry (the bag folder) inside :func:`record_trials`."""
+    target = _RECORD.get()
+    if target is None:
+        return {}
+    target.used = True
+    return {"record": str(target.folder)}
+
+
+def trial_bag_name(label: dict, site: str, trial: int) -> str:
+    """File name of a trial's bag: ``<label>site-<site>-trial-<n>.mcap``, the label as
+    ``key-value-`` pairs (``method-mmpa-site-1-trial-0.mcap``); characters other than
+    letters, digits and ``._'+-`` become ``_``."""
+    text = "".join(f"{k}-{v}-" for k, v in label.items()) + f"site-{site}-trial-{int(trial)}"
+    return re.sub(r"[^A-Za-z0-9._'+-]", "_", text) + ".mcap"
+
+
 def trial_job(spec_json: str, bundle: str | dict[str, bytes], trial: int) -> dict:
     """Run trial ``trial`` of one site (a worker job): ``{"row": ..., "iters": [...]}``.
     ``spec_json`` holds the settings (``cfg``), ``site``, ``scene``, ``automation``,
     ``kind`` (``"ipe"``: park and IPE; ``"park"``: park only), ``execute``, ``tmma``,
-    ``label``; ``bundle`` the taught task (a bundle's path, or its files)."""
+    ``label``, and ``record`` when the trial records itself (a folder: the trial's bag is
+    :func:`trial_bag_name` there; :func:`record_trials`); ``bundle`` the taught task (a
+    bundle's path, or its files)."""
     spec = json.loads(spec_json)
     ts = _cached_site(spec, bundle)
     ts.begin_trial(trial)
+    record = spec.get("record")
+    if record is None:
+        return _trial(ts, spec, trial)
+    with ts.recording(Path(record) / trial_bag_name(spec["label"], spec["site"], trial)):
+        return _trial(ts, spec, trial)
+
+
+def _trial(ts: TwinSite, spec: dict, trial: int) -> dict:
     if spec["kind"] == "park":
         ts.park(session=trial + 1)
         row = {"site": spec["site"], "trial": trial, "mode": ts.cfg.parking}
@@ -779,6 +900,7 @@ def _run_groups(cfg, progress, groups, kind, ex):
                 "tmma": g.tmma,
                 "label": g.label,
                 "bundle_id": bundle_id,
+                **_record_spec(),  # the bag folder while recording (record_trials)
             }
             spec_json = json.dumps(spec, sort_keys=True)
             world = _world_key(spec)

@@ -21,6 +21,8 @@ from mmpa.missions.mmpa import AutomationConfig
 
 #: the runner may run this experiment's trials on an executor (``--workers``, ``--executor``)
 PARALLEL_TRIALS = True
+#: every trial can record itself to a bag of its own (``mmpa experiment --record DIR``)
+RECORDS_TRIALS = True
 
 PAPER = "paper 000 Table 3, Fig. 8 and Fig. 9 (IPE accuracy, iterations, registration time)"
 

@@ -17,6 +17,8 @@ from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
 from mmpa.sim.error_model import PARKING_TABLE2
 
 PARALLEL_TRIALS = True
+#: every trial can record itself to a bag of its own (``mmpa experiment --record DIR``)
+RECORDS_TRIALS = True
 
 PAPER = "paper 000 Table 2 (initial parking pose accuracy)"
 

@@ -17,6 +17,8 @@ from mmpa.experiments.mmpa_ipe import method_trials
 from mmpa.experiments.runner import Context, Outcome, markdown_table, stats, write_csv
 
 PARALLEL_TRIALS = True
+#: every trial can record itself to a bag of its own (``mmpa experiment --record DIR``)
+RECORDS_TRIALS = True
 
 PAPER = "paper 000 Table 4 (needle-tip distance bias, TMMA vs MMPA) and Fig. 10"
 

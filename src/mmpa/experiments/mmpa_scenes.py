@@ -22,6 +22,8 @@ from mmpa.experiments.runner import Context, Outcome, markdown_table
 from mmpa.sim.scene import DeskItem, SceneConfig, load_scene
 
 PARALLEL_TRIALS = True
+#: every trial can record itself to a bag of its own (``mmpa experiment --record DIR``)
+RECORDS_TRIALS = True
 
 PAPER = "paper 000 Appendix A.3, Table A.7 (IPE on plain and textured scenes)"
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mmpa.bags.record import ARM_RATE_HZ
 from mmpa.experiments.mmpa_common import MMPAExperimentConfig, TwinSite, ipe_rows, offset_row
 from mmpa.geometry import T_to_vec6
 from mmpa.tasks import TaskStore
@@ -25,7 +26,7 @@ Progress = Callable[[str, float], None]
 #: Hz: the least rate of the arm's /joint_states (and its /tf) in a recorded run; it runs at
 #: the task path's rate (the rate the path is commanded and its execution's encoders are
 #: read, 50 Hz in the twin's tasks) when that is higher
-RECORD_MIN_JOINT_HZ = 50.0
+RECORD_MIN_JOINT_HZ = ARM_RATE_HZ
 
 
 def teach_task(
@@ -67,24 +68,20 @@ def run_task(
     """Park at ``site`` (default: the task's), run IPE + adapted path; errors vs the truth.
 
     ``record``: also record the run (parking, IPE, the executed path) to this ROS 2 bag
-    (``FILE.mcap`` or a rosbag2 folder; overwritten) with :class:`mmpa.bags.Recorder`: the
+    (``FILE.mcap`` or a rosbag2 folder; overwritten; :meth:`TwinSite.recording`): the
     scans and camera frames as the algorithms read them, ``/joint_states`` and the arm's
     ``/tf`` at the task's path rate (at least :data:`RECORD_MIN_JOINT_HZ`) through every
-    arm motion, ``/tf_static`` and the ground truth on ``/truth/...``. The recorder draws
-    nothing and steps the same physics, so the run and its summary are those of the run
-    without ``record`` (plus ``bag``: the path)."""
+    arm motion, ``/map`` and the parking localization (``/initialpose``, ``/amcl_pose``,
+    ``/particlecloud``, ``map -> odom``), ``/tf_static`` and the ground truth on
+    ``/truth/...``. The recorder draws nothing and steps the same physics, so the run and
+    its summary are those of the run without ``record`` (plus ``bag``: the path)."""
     cfg = cfg or MMPAExperimentConfig()
     with TaskStore(db) as store:
         task = store.load(name)
     site = site or task.site
     with TwinSite(cfg, site, task=task) as ts, ExitStack() as stack:
         if record is not None:
-            from mmpa.bags import BagWriter, Recorder
-
-            bag = stack.enter_context(BagWriter(record, overwrite=True))
-            rate = max(float(task.path.rate_hz), RECORD_MIN_JOINT_HZ)
-            recorder = stack.enter_context(Recorder(bag, ts.world, joint_rate_hz=rate))
-            ts.world = recorder.world()  # the same world, its readings recorded
+            stack.enter_context(ts.recording(record))
         for _ in range(trial + 1):  # the trial-th parking draw of this seed
             ts.park()
         out: dict = {"profile": cfg.errors.profile, "task": name, "site": site, "trial": trial}

@@ -19,6 +19,8 @@ An experiment module provides
   (``None`` means the paper's count);
 - ``PAPER``: a one-line citation of the reproduced table/figure;
 - ``run(cfg: Config, ctx: Context) -> Outcome``;
+- optionally ``RECORDS_TRIALS = True``: each trial can record itself to a ROS 2 bag of its
+  own (``--record DIR``, :func:`mmpa.experiments.mmpa_common.record_trials`);
 - optionally ``PARALLEL_TRIALS = True``: its trials run on ``ctx.executor``
   (:mod:`mmpa.experiments.executor`): ``workers`` local processes or Ray tasks, each trial
   seeded on its own so that ``results.csv`` is the same whatever the executor and worker
@@ -134,6 +136,7 @@ def run_experiment(
     ray_address: str | None = None,
     resume: bool = False,
     compare: Sequence[str] = (),
+    record: str | Path | None = None,
 ) -> Outcome:
     """Run experiment ``name`` and write its run folder (see the module docstring).
 
@@ -144,9 +147,20 @@ def run_experiment(
     ``out`` (same configuration but for ``trials``) and run the rest. ``compare``: error
     model profiles to run the same experiment under as well (same seed, trials and
     overrides), each into ``out/profile-NAME``; the report then ends with their summary
-    figures beside this run's (:func:`compare_profiles`)."""
+    figures beside this run's (:func:`compare_profiles`). ``record``: a folder where every
+    trial records its own ROS 2 bag (``<label>site-<site>-trial-<n>.mcap``;
+    :func:`mmpa.experiments.mmpa_common.record_trials`; a ``compare`` profile's trials go to
+    ``record/profile-NAME``); only the experiments whose trials run on the executor
+    (``PARALLEL_TRIALS``: the paper 000 twin experiments) can record, the others raise a
+    :class:`ConfigError` naming the experiment."""
     mod = experiment_module(name)
     parallel = getattr(mod, "PARALLEL_TRIALS", False)
+    if record is not None and not getattr(mod, "RECORDS_TRIALS", False):
+        raise ConfigError(
+            f"experiment {name!r} cannot record its trials (--record): only the experiments "
+            "whose trials run one by one in a twin site record, one bag per trial: "
+            + ", ".join(k for k, v in EXPERIMENTS.items() if _parallel(v, "RECORDS_TRIALS"))
+        )
     if not parallel and (workers != 1 or executor != "local" or ray_address or resume):
         raise ConfigError(
             f"experiment {name!r} runs its trials in one process: --workers, --executor, "
@@ -180,12 +194,25 @@ def run_experiment(
     ctx = Context(name=name, out=out, progress=progress or (lambda stage, frac: None))
     t0 = time.perf_counter()
     if parallel:
-        from mmpa.experiments.executor import make_executor
+        from contextlib import nullcontext
 
-        with make_executor(executor, workers, out, resume, ray_address) as ex:
+        from mmpa.experiments.executor import make_executor
+        from mmpa.experiments.mmpa_common import record_trials
+
+        with (
+            make_executor(executor, workers, out, resume, ray_address) as ex,
+            record_trials(record) if record is not None else nullcontext() as target,
+        ):
             ctx.executor = ex
             outcome: Outcome = mod.run(cfg, ctx)
         outcome.summary.setdefault("executor", ex.describe())
+        if target is not None:
+            if not target.used:  # no silent ignore: it ran trials that did not record
+                raise ConfigError(
+                    f"experiment {name!r} ran no trials that can record (--record): "
+                    f"nothing was recorded to {record}"
+                )
+            outcome.summary.setdefault("bags", str(target.folder))
     else:
         outcome = mod.run(cfg, ctx)
     wall = time.perf_counter() - t0
@@ -209,6 +236,7 @@ def run_experiment(
                 name, out / f"profile-{p}", seed=seed, trials=trials, profile=p,
                 config=config, overrides=keep, workers=workers, executor=executor,
                 ray_address=ray_address, resume=resume,
+                record=None if record is None else Path(record) / f"profile-{p}",
             )  # fmt: skip
             others[p] = sub.summary
         table = compare_profiles(errors.profile, outcome.summary, others)
@@ -246,9 +274,11 @@ def compare_profiles(profile: str, summary: dict, others: dict[str, dict]) -> st
     )
 
 
-def _parallel(module_path: str) -> bool:
+def _parallel(module_path: str, flag: str = "PARALLEL_TRIALS") -> bool:
+    """Whether the experiment module at ``module_path`` sets ``flag`` (False when it does
+    not import)."""
     try:
-        return bool(getattr(importlib.import_module(module_path), "PARALLEL_TRIALS", False))
+        return bool(getattr(importlib.import_module(module_path), flag, False))
     except ImportError:
         return False
 
