@@ -190,11 +190,23 @@ def test_a_grasp_cell_run_alone_repeats_its_trials_in_the_full_table(tmp_path):
         tmp_path / "alone",
         trials=1,
         overrides=["objects=[tennis_ball]", "lighting=[normal]", "weights=oracle"],
+        record=tmp_path / "bags",  # and recorded: the same trial (issue 20)
     )
     a, b = alone.rows[0], both.rows[1]
     assert b["object"] == a["object"] == "tennis_ball"
     assert a["grasped"]
     assert {k: a[k] for k in keys} == {k: b[k] for k in keys}
+    # its bag: a camera frame at every servo tick, the arm at >= 50 Hz
+    from mmpa.backends.bag import bag_topics, read_messages
+    from mmpa.bags import messages as rm
+
+    bag = tmp_path / "bags" / "object-tennis_ball-lighting-normal-site-0-trial-0.mcap"
+    counts = {k: v[1] for k, v in bag_topics(bag).items()}
+    assert counts["/camera/color/image_raw"] >= a["ticks"] > 10
+    t = np.array(
+        [rm.from_joint_state(m)[0] for m in read_messages(bag, ["/joint_states"])["/joint_states"]]
+    )
+    assert len(t) > 50 and 0 < np.diff(t).min() and np.diff(t).max() <= 0.02 + 1e-9
     with pytest.raises(UnknownNameError, match="twilight"):
         run_experiment("grasp", tmp_path / "bad", trials=1, overrides=["lighting=[twilight]"])
 

@@ -14,7 +14,9 @@ desk 2 s later, in the physics (not a distance threshold).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -421,6 +423,8 @@ def make_grasper(cfg: Any, world: Any = None) -> Any:
 
 #: the runner may run this experiment's trials on an executor (``--workers``, ``--executor``)
 PARALLEL_TRIALS = True
+#: every trial can record itself to a bag of its own (``mmpa experiment --record DIR``)
+RECORDS_TRIALS = True
 
 #: this process's twins for grasp trials (a worker keeps them between trials): the world per
 #: error model, the grasper per (world, grasp settings)
@@ -450,9 +454,33 @@ def clear_twins() -> None:
         _TWINS.popitem()[1].close()
 
 
-def grasp_job(cfg_json: str, obj: str, light: str, t: int) -> dict[str, Any]:
+@contextmanager
+def recorded(world: Any, folder: str | None, label: dict, trial: int) -> Iterator[Any]:
+    """``world`` itself, or (``folder`` given: ``mmpa experiment --record``) its recording
+    stand-in writing the trial's ROS 2 bag ``folder/<label>site-0-trial-<n>.mcap``: every
+    camera frame the servo loop used, ``/joint_states`` and the arm's ``/tf`` at
+    :data:`~mmpa.bags.record.ARM_RATE_HZ`, the truth. The trial is the same trial."""
+    if folder is None:
+        yield world
+        return
+    from mmpa.bags import BagWriter, Recorder
+    from mmpa.bags.record import ARM_RATE_HZ
+    from mmpa.experiments.mmpa_common import trial_bag_name
+
+    path = Path(folder) / trial_bag_name(label, "0", trial)
+    with (
+        BagWriter(path, overwrite=True) as bag,
+        Recorder(bag, world, joint_rate_hz=ARM_RATE_HZ) as rec,
+    ):
+        yield rec.world()
+
+
+def grasp_job(
+    cfg_json: str, obj: str, light: str, t: int, record: str | None = None
+) -> dict[str, Any]:
     """Trial ``t`` of the cell (``obj``, ``light``) (a worker job): its row. Every draw (scene,
-    sensor noise) from the trial's own seed, so a trial alone is the same as in the table."""
+    sensor noise) from the trial's own seed, so a trial alone is the same as in the table.
+    ``record``: a folder for the trial's bag (:func:`recorded`)."""
     from mmpa.sim.world import SimWorld
 
     cfg = Config.model_validate_json(cfg_json)
@@ -461,7 +489,8 @@ def grasp_job(cfg_json: str, obj: str, light: str, t: int) -> dict[str, Any]:
     cell = CLASSES.index(obj) * len(lights) + lights.index(light)
     rng = np.random.default_rng([cfg.seed, cell, t])
     world.set_episode(cell * 100_000 + t)
-    row = grasp_trial(world, grasper, obj, light, rng, others=cfg.others)
+    with recorded(world, record, {"object": obj, "lighting": light}, t) as w:
+        row = grasp_trial(w, grasper, obj, light, rng, others=cfg.others)
     row["trial"] = t
     return row
 
@@ -493,10 +522,17 @@ def run(cfg: Config, ctx: Context, progress: Callable[[str, float], None] | None
     for li in cfg.lighting:
         if li not in SimWorld.LIGHTING:
             raise UnknownNameError("lighting condition", li, list(SimWorld.LIGHTING))
+    from mmpa.experiments.mmpa_common import recording_folder
+
     n = cfg.n_trials()
     cfg_json = cfg.model_dump_json()
+    rec = recording_folder()  # mmpa experiment --record
     jobs = [
-        ({"object": obj, "lighting": light, "trial": t}, grasp_job, (cfg_json, obj, light, t))
+        (
+            {"object": obj, "lighting": light, "trial": t},
+            grasp_job,
+            (cfg_json, obj, light, t, rec),
+        )
         for obj in cfg.objects
         for light in cfg.lighting
         for t in range(n)

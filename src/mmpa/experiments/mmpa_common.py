@@ -85,6 +85,7 @@ __all__ = [
     "TwinSite",
     "ipe_trials",
     "record_trials",
+    "recording_folder",
     "run_trial_groups",
     "trial_bag_name",
 ]
@@ -731,13 +732,20 @@ def record_trials(folder: str | Path) -> Iterator[_RecordTarget]:
         _RECORD.reset(token)
 
 
-def _record_spec() -> dict:
-    """The trial spec's ``record`` entry (the bag folder) inside :func:`record_trials`."""
+def recording_folder() -> str | None:
+    """The folder the trials about to be handed out record their bags to, inside
+    :func:`record_trials` (and noted as used); None outside it."""
     target = _RECORD.get()
     if target is None:
-        return {}
+        return None
     target.used = True
-    return {"record": str(target.folder)}
+    return str(target.folder)
+
+
+def _record_spec() -> dict:
+    """The trial spec's ``record`` entry (the bag folder) inside :func:`record_trials`."""
+    folder = recording_folder()
+    return {} if folder is None else {"record": folder}
 
 
 def trial_bag_name(label: dict, site: str, trial: int) -> str:

@@ -17,7 +17,7 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from mmpa.experiments.grasp import Config as GraspExperimentConfig
-from mmpa.experiments.grasp import grasp_trial, run_jobs, twin_for
+from mmpa.experiments.grasp import grasp_trial, recorded, run_jobs, twin_for
 from mmpa.experiments.runner import Context, Outcome, markdown_table
 from mmpa.servo.grasp import GraspConfig
 from mmpa.sim.error_model import ErrorModelConfig
@@ -46,6 +46,8 @@ class Config(BaseModel):
 
 #: the runner may run this experiment's trials on an executor (``--workers``, ``--executor``)
 PARALLEL_TRIALS = True
+#: every trial can record itself to a bag of its own (``mmpa experiment --record DIR``)
+RECORDS_TRIALS = True
 
 
 def _grasp_config(cfg: Config, pred: bool) -> GraspExperimentConfig:
@@ -59,25 +61,36 @@ def _grasp_config(cfg: Config, pred: bool) -> GraspExperimentConfig:
     )
 
 
-def tracking_job(cfg_json: str, pred: bool, speed: float, t: int) -> dict[str, Any]:
+def tracking_job(
+    cfg_json: str, pred: bool, speed: float, t: int, record: str | None = None
+) -> dict[str, Any]:
     """Trial ``t`` at ``speed`` m/s, with or without the predictor (a worker job): its row.
     Every draw (scene, operator, sensor noise) from the trial's own seed: the same trial
-    with and without the predictor, whatever ran before it."""
+    with and without the predictor, whatever ran before it. ``record``: a folder for the
+    trial's bag (:func:`mmpa.experiments.grasp.recorded`)."""
     cfg = Config.model_validate_json(cfg_json)
     world, grasper = twin_for(_grasp_config(cfg, pred))
     mm_s = round(1000 * speed)
     rng = np.random.default_rng([cfg.seed, mm_s, t])
     world.set_episode(mm_s * 1000 + t)
-    row = grasp_trial(world, grasper, cfg.object, cfg.lighting, rng, speed=speed, others=cfg.others)
+    with recorded(world, record, {"predictor": pred, "speed": speed}, t) as w:
+        row = grasp_trial(w, grasper, cfg.object, cfg.lighting, rng, speed=speed, others=cfg.others)
     row.update(trial=t, predictor=pred)
     return row
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
+    from mmpa.experiments.mmpa_common import recording_folder
+
     n = cfg.n_trials()
     cfg_json = cfg.model_dump_json()
+    rec = recording_folder()  # mmpa experiment --record
     jobs = [
-        ({"predictor": pred, "speed": speed, "trial": t}, tracking_job, (cfg_json, pred, speed, t))
+        (
+            {"predictor": pred, "speed": speed, "trial": t},
+            tracking_job,
+            (cfg_json, pred, speed, t, rec),
+        )
         for pred in cfg.predictor
         for speed in cfg.speeds
         for t in range(n)
