@@ -4,20 +4,37 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from mmpa.experiments.runner import run_experiment
 
 
 def test_localization_experiment_small(tmp_path) -> None:
+    """One navigation trial and one kidnapping, the trial recorded (``--record``): its bag
+    holds an estimate per scan, the last one off the recorded truth by the row's error."""
+    import numpy as np
+
+    from mmpa.backends.bag import BagPlayback, bag_topics, read_messages
+    from mmpa.bags import messages as rm
+
     out = run_experiment(
         "localization",
         tmp_path,
         trials=1,
         overrides=["methods=[enhanced]", "kidnap_trials=1", "kidnap_duration=5"],
+        record=tmp_path / "bags",
     )
     s = json.loads((tmp_path / "summary.json").read_text())["methods"]["enhanced"]
     assert s["err_pos_cm"] < 1.2 and s["success"] == 1.0
     assert s["kidnap_recovered"] == 1.0
     assert "paper position" in out.report and (tmp_path / "fig9_error_vs_time.png").exists()
+    bag = tmp_path / "bags" / "method-enhanced-site-0-trial-0.mcap"
+    counts = {k: v[1] for k, v in bag_topics(bag).items()}
+    assert counts["/map"] == 1 and counts["/amcl_pose"] == counts["/scan"] > 100
+    t, pose, _ = rm.from_pose_cov(read_messages(bag, ["/amcl_pose"])["/amcl_pose"][-1])
+    truth = BagPlayback.open(bag).truth_at(t)
+    err = float(np.hypot(*(pose[:2] - truth[:2])))
+    assert err == pytest.approx(out.rows[0]["err_pos_m"], abs=1e-6)
 
 
 def test_reflector_dropout_small(tmp_path) -> None:

@@ -23,6 +23,7 @@ calibrated mount; the others (the paper's methods) keep the nominal one.
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -42,6 +43,10 @@ from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
 from mmpa.sim.world import SimWorld
 
 PAPER = "paper 001 (Zhou et al. 2020) §4.3.1, Table 2 and Fig. 9"
+#: the runner may run this experiment's trials on an executor (``--workers``, ``--executor``)
+PARALLEL_TRIALS = True
+#: every navigation trial can record itself to a bag of its own (``--record DIR``)
+RECORDS_TRIALS = True
 
 PAPER_TABLE2 = {
     "amcl": {"x": 3.91, "y": 3.32, "pos": 5.14, "theta": 0.027, "success": 0.20},
@@ -176,10 +181,19 @@ def corridor_start(nav: CostMap, rng: np.random.Generator, cfg: Any) -> np.ndarr
 
 
 def _trial(
-    cfg: Config, k: int, method: str, mount: np.ndarray | None = None
+    cfg: Config,
+    k: int,
+    method: str,
+    mount: np.ndarray | None = None,
+    record: str | None = None,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Navigation trial ``k`` of ``method``: its row and trace. ``record``: a folder for the
+    trial's ROS 2 bag (``method-M-site-0-trial-k.mcap``: scans, odometry, the map, the
+    estimates, the particles, the truth; ``mmpa experiment --record``)."""
+    from contextlib import ExitStack
+
     rng = np.random.default_rng([cfg.seed, k])
-    with SimWorld(errors=cfg.errors, site="0", episode=k) as world:
+    with SimWorld(errors=cfg.errors, site="0", episode=k) as world, ExitStack() as stack:
         nav = CostMap(twin_nav_map(world, cfg.resolution))
         start = corridor_start(nav, rng, cfg)
         guess = rough_pose(start, rng, *initial_sigmas(cfg))  # the operator's rough pose
@@ -187,11 +201,22 @@ def _trial(
         grid = twin_map(world, cfg.resolution)
         lp = laser_pose2d(world) if mount is None else mount
         loc = make_localizer(method, grid, lp, np.random.default_rng([cfg.seed, k, 7]))
+        robot: Any = world
+        if record is not None:  # the same trial, observed (mmpa.bags.Recorder)
+            from mmpa.bags import BagWriter, Recorder
+            from mmpa.experiments.mmpa_common import trial_bag_name
+
+            path = Path(record) / trial_bag_name({"method": method}, "0", k)
+            rec = stack.enter_context(
+                Recorder(stack.enter_context(BagWriter(path, overwrite=True)), world)
+            )
+            robot, loc = rec.world(), rec.localizer(loc)
+            rec.write_map(grid)
         loc.initialize(guess)
         goal = world.scene.site(cfg.goal_site).pose2d
         t0 = time.perf_counter()
         res = navigate(
-            world,
+            robot,
             loc,
             grid,
             goal,
@@ -257,27 +282,59 @@ def _kidnap(cfg: Config, k: int, method: str, mount: np.ndarray | None = None) -
     return {"kidnap_trial": k, "method": method, "recovery_s": recovered}
 
 
+def trial_job(
+    cfg_json: str, k: int, method: str, mount: list[float] | None, record: str | None
+) -> dict[str, Any]:
+    """Navigation trial ``k`` of ``method`` (a worker job): ``{"row", "trace"}`` (the trace
+    only for trial 0, the one plotted). Its world, map and generators are its own."""
+    cfg = Config.model_validate_json(cfg_json)
+    m = None if mount is None else np.asarray(mount, float)
+    row, trace = _trial(cfg, k, method, m, record)
+    return {"row": row, "trace": trace if k == 0 else None}
+
+
+def kidnap_job(cfg_json: str, k: int, method: str, mount: list[float] | None) -> dict[str, Any]:
+    """Kidnap trial ``k`` of ``method`` (a worker job): its row."""
+    cfg = Config.model_validate_json(cfg_json)
+    return _kidnap(cfg, k, method, None if mount is None else np.asarray(mount, float))
+
+
 def run(cfg: Config, ctx: Context) -> Outcome:
+    from mmpa.experiments.executor import SerialExecutor
+    from mmpa.experiments.mmpa_common import recording_folder
+
     for m in cfg.methods:
         if m not in METHODS:
             raise ValueError(f"unknown method {m!r}; valid: {', '.join(METHODS)}")
     n = cfg.trials if cfg.trials is not None else 20
+    mounts = method_mounts(cfg, cfg.methods, cfg.goal_site)
+    ml = {m: None if v is None else [float(x) for x in v] for m, v in mounts.items()}
+    cfg_json = cfg.model_dump_json()
+    rec = recording_folder()  # mmpa experiment --record
+    jobs: list = [
+        ({"method": m, "trial": k}, trial_job, (cfg_json, k, m, ml[m], rec))
+        for k in range(n)
+        for m in cfg.methods
+    ]
+    jobs += [
+        ({"method": m, "kidnap_trial": k}, kidnap_job, (cfg_json, k, m, ml[m]))
+        for k in range(cfg.kidnap_trials)
+        for m in cfg.methods
+    ]
+    ex = ctx.executor if ctx.executor is not None else SerialExecutor()
+    try:
+        recs = ex.run(jobs, lambda done, total, r: ctx.progress("trials", done / total))
+    finally:
+        if ctx.executor is None:
+            ex.close()
     rows: list[dict[str, Any]] = []
     traces: dict[str, dict[str, np.ndarray]] = {}
-    total = n * len(cfg.methods)
-    mounts = method_mounts(cfg, cfg.methods, cfg.goal_site)
-    for k in range(n):
-        for m in cfg.methods:
-            row, trace = _trial(cfg, k, m, mounts[m])
-            rows.append(row)
-            if k == 0:
-                traces[m] = trace
-            ctx.progress("trials", len(rows) / total)
-    kid_rows = []
-    for k in range(cfg.kidnap_trials):
-        for m in cfg.methods:
-            kid_rows.append(_kidnap(cfg, k, m, mounts[m]))
-        ctx.progress("kidnap", (k + 1) / max(cfg.kidnap_trials, 1))
+    for r in recs[: n * len(cfg.methods)]:
+        res = r["result"]
+        rows.append({**res["row"], "trial_s": r["trial_s"], "worker_rss_mb": r["worker_rss_mb"]})
+        if res["trace"] is not None:
+            traces[res["row"]["method"]] = {k: np.asarray(v) for k, v in res["trace"].items()}
+    kid_rows = [r["result"] for r in recs[n * len(cfg.methods) :]]
 
     summary: dict[str, Any] = {"trials_per_method": n, "methods": {}}
     cal = next((v for v in mounts.values() if v is not None), None)
