@@ -114,16 +114,31 @@ def test_desk_search_finds_the_legs_only_where_the_map_puts_them():
 
 @pytest.mark.slow
 def test_mobile_manipulation_one_run(tmp_path):
+    from mmpa.backends.bag import BagPlayback, bag_topics, read_messages
+    from mmpa.bags import messages as rm
     from mmpa.experiments.runner import run_experiment
 
     out = run_experiment(
-        "mobile-manipulation", tmp_path, trials=1, overrides=["objects=[tennis_ball]"]
+        "mobile-manipulation",
+        tmp_path,
+        trials=1,
+        overrides=["objects=[tennis_ball]"],
+        record=tmp_path / "bags",
     )
     row = out.rows[0]
     assert row["object"] == "tennis_ball"
     for k in ("navigation", "detected", "grasped", "desk_found"):
         assert isinstance(row[k], bool)
     assert (tmp_path / "report.md").read_text().count("tennis_ball") >= 1
+    # the run's bag (--record): the drive's estimates, the grasp's frames, the arm at 50 Hz;
+    # the last estimate against the recorded truth is the row's parking localization error
+    bag = tmp_path / "bags" / "object-tennis_ball-site-0-trial-0.mcap"
+    counts = {k: v[1] for k, v in bag_topics(bag).items()}
+    assert counts["/map"] == 1 and counts["/amcl_pose"] > 50
+    assert counts["/camera/color/image_raw"] > 0
+    t, pose, _ = rm.from_pose_cov(read_messages(bag, ["/amcl_pose"])["/amcl_pose"][-1])
+    truth = BagPlayback.open(bag).truth_at(t)
+    assert float(np.hypot(*(pose[:2] - truth[:2]))) == pytest.approx(row["loc_err_m"], abs=2e-3)
 
 
 def test_servo_views_put_the_tcp_above_the_target_in_the_simulator():

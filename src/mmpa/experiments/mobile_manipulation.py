@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -54,6 +55,10 @@ from mmpa.navigation.mission import NavigateConfig
 from mmpa.sim.error_model import ErrorModelConfig
 
 PAPER = "paper 001 (Zhou et al. 2020) §4.3.4, Table 4 (mobile manipulation, 20 runs per object)"
+#: the runner may run this experiment's trials on an executor (``--workers``, ``--executor``)
+PARALLEL_TRIALS = True
+#: every run can record itself to a bag of its own (``mmpa experiment --record DIR``)
+RECORDS_TRIALS = True
 
 #: Table 4: success rate per object (paper names mapped to ours)
 TABLE4 = {
@@ -219,8 +224,14 @@ def place_trial_objects(world: Any, rng: np.random.Generator, name: str, others:
     _place_in_region(world, rng, name, placed, REGION)
 
 
-def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
-    """One run (module doc); truth read only for the evaluation columns."""
+def mm_trial(
+    cfg: Config, k: int, name: str, grasper: Any, record: str | None = None
+) -> dict[str, Any]:
+    """One run (module doc); truth read only for the evaluation columns. ``record``: a folder
+    for the run's ROS 2 bag (``object-NAME-site-0-trial-k.mcap``: scans, odometry, the map,
+    the estimates, every camera frame, the arm at 50 Hz, the truth; ``--record``)."""
+    from contextlib import ExitStack
+
     from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, held_in_the_physics, run_grasp
     from mmpa.experiments.perception_data import DESK_PARK, desk_frame
     from mmpa.geometry import inv, se2_to_T
@@ -235,7 +246,18 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
 
     rng = np.random.default_rng([cfg.seed, k, CLASSES.index(name)])
     w0 = time.perf_counter()
-    with SimWorld(errors=cfg.errors, site="0", episode=k) as world:
+    with SimWorld(errors=cfg.errors, site="0", episode=k) as world, ExitStack() as stack:
+        rec = None
+        if record is not None:  # the same run, observed: `world` is the recording stand-in
+            from mmpa.bags import BagWriter, Recorder
+            from mmpa.bags.record import ARM_RATE_HZ
+            from mmpa.experiments.mmpa_common import trial_bag_name
+
+            bag = stack.enter_context(
+                BagWriter(Path(record) / trial_bag_name({"object": name}, "0", k), overwrite=True)
+            )
+            rec = stack.enter_context(Recorder(bag, world, joint_rate_hz=ARM_RATE_HZ))
+            world = rec.world()
         nav = CostMap(twin_nav_map(world, cfg.resolution))
         start = corridor_start(nav, rng, cfg)
         guess = rough_pose(start, rng, *initial_sigmas(cfg))  # the operator's rough pose
@@ -248,6 +270,9 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
         loc = make_localizer(
             cfg.method, grid, laser_pose2d(world), np.random.default_rng([cfg.seed, k, 7])
         )
+        if rec is not None:
+            rec.write_map(grid)
+            loc = rec.localizer(loc)
         loc.initialize(guess)
         park = np.array(DESK_PARK)
         back = cfg.entry_back * np.array([np.cos(park[2]), np.sin(park[2])])
@@ -312,9 +337,25 @@ def mm_trial(cfg: Config, k: int, name: str, grasper: Any) -> dict[str, Any]:
     }
 
 
+#: this process's grasper (a worker keeps it between runs): settings -> grasper
+_GRASPERS: dict[str, Any] = {}
+
+
+def mm_job(cfg_json: str, k: int, name: str, record: str | None) -> dict[str, Any]:
+    """Run ``k`` for object ``name`` (a worker job): its row. The world, the scene and
+    every draw are the run's own (``episode=k``, ``[seed, k, object]``)."""
+    from mmpa.experiments.grasp import make_grasper
+
+    cfg = Config.model_validate_json(cfg_json)
+    key = cfg.model_dump_json(exclude={"seed", "trials", "objects"})
+    if key not in _GRASPERS:
+        _GRASPERS.clear()
+        _GRASPERS[key] = make_grasper(cfg)
+    return mm_trial(cfg, k, name, _GRASPERS[key], record)
+
+
 def run(cfg: Config, ctx: Context) -> Outcome:
     from mmpa.errors import UnknownNameError
-    from mmpa.experiments.grasp import make_grasper
     from mmpa.localization.localizer import METHODS
     from mmpa.perception import CLASSES
 
@@ -325,14 +366,18 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         raise UnknownNameError("localization method", cfg.method, list(METHODS))
     if cfg.weights == "oracle":
         raise UnknownNameError("weights", "oracle", ["a weights file", "None (shipped)"])
+    from mmpa.experiments.grasp import run_jobs
+    from mmpa.experiments.mmpa_common import recording_folder
+
     n = cfg.n_trials()
-    grasper = make_grasper(cfg)
-    rows: list[dict[str, Any]] = []
-    total = n * len(cfg.objects)
-    for obj in cfg.objects:
-        for k in range(n):
-            rows.append(mm_trial(cfg, k, obj, grasper))
-            ctx.progress("runs", len(rows) / total)
+    cfg_json = cfg.model_dump_json()
+    rec = recording_folder()  # mmpa experiment --record
+    jobs = [
+        ({"object": obj, "trial": k}, mm_job, (cfg_json, k, obj, rec))
+        for obj in cfg.objects
+        for k in range(n)
+    ]
+    rows = run_jobs(ctx, jobs, "runs")
     summary: dict[str, Any] = {"runs_per_object": n, "objects": {}}
     table = []
     for obj in cfg.objects:
