@@ -9,6 +9,9 @@ from mmpa.experiments.runner import run_experiment
 
 
 def test_fiducial_search_experiment_small(tmp_path) -> None:
+    """Six passes on two worker processes (``--workers 2``); every pass draws from its own
+    seed (``[seed, rep, speed, study]``), so the spiral pass at 3 cm/s run alone in this
+    process is the same pass, to the float."""
     out = run_experiment(
         "fiducial-search",
         tmp_path,
@@ -18,7 +21,20 @@ def test_fiducial_search_experiment_small(tmp_path) -> None:
             "strategies=[stochastic, spiral]",
             "tilt_speeds_cm_s=[2.0]",
         ],
+        workers=2,
     )
+    assert out.summary["executor"] == "local x2"
+    alone = run_experiment(
+        "fiducial-search",
+        tmp_path / "alone",
+        trials=1,
+        overrides=["speeds_cm_s=[3.0]", "strategies=[spiral]", "tilt_study=false"],
+    )
+    drop = {"wall_s", "worker_rss_mb"}
+    a = {k: v for k, v in alone.rows[0].items() if k not in drop}
+    b = {k: v for k, v in out.rows[3].items() if k not in drop}
+    assert a["strategy"] == "spiral" and a["speed_cm_s"] == 3.0 and a["intercepted"] >= 1
+    assert a == b
     rows = list(csv.DictReader(open(tmp_path / "results.csv")))
     assert len(rows) == 2 * 2 + 2  # main passes + tilt study
     for r in rows:

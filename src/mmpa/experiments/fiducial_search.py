@@ -33,6 +33,8 @@ from mmpa.sim.moving_base import KinematicMovingBase, MovingBaseNoise
 from mmpa.sim.world import SimWorld
 
 PAPER = "paper 002 Fig. 4 (fiducials intercepted and search time vs base speed, simulation)"
+#: the runner may run this experiment's passes on an executor (``--workers``, ``--executor``)
+PARALLEL_TRIALS = True
 
 PAPER_FIGURES = {
     "stochastic": {"intercepted": 4.27, "search_time": 5.90},
@@ -162,6 +164,33 @@ def _boxplots(rows: list[dict[str, Any]], strategies: list[str], speeds: list[fl
     fig.savefig(path, dpi=100)
 
 
+#: this process's twin (a worker keeps it between passes): error model -> world
+_WORLDS: dict[str, SimWorld] = {}
+
+
+def clear_worlds() -> None:
+    """Close the worlds this process keeps between passes."""
+    while _WORLDS:
+        _WORLDS.popitem()[1].close()
+
+
+def pass_job(
+    cfg_json: str, study: str, strategy: str, v_cm: float, rep: int, noise_json: str
+) -> dict[str, Any]:
+    """One search pass (a worker job): its row. Every draw is the pass's own
+    (``[seed, rep, speed, study]``): a pass is the same whatever ran in the world before."""
+    cfg = Config.model_validate_json(cfg_json)
+    key = cfg.errors.model_dump_json()
+    if key not in _WORLDS:
+        clear_worlds()
+        _WORLDS[key] = SimWorld(site="0", errors=cfg.errors)
+    noise = MovingBaseNoise.model_validate_json(noise_json)
+    t0 = time.perf_counter()
+    row = _pass(_WORLDS[key], cfg, strategy, v_cm, rep, noise, study)
+    row["wall_s"] = time.perf_counter() - t0  # the pass alone (not the world's build)
+    return row
+
+
 def run(cfg: Config, ctx: Context) -> Outcome:
     reps = cfg.trials or 10
     jobs = [
@@ -178,13 +207,25 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             for v in cfg.tilt_speeds_cm_s
             for r in range(reps)
         ]
-    rows: list[dict[str, Any]] = []
-    with SimWorld(site="0", errors=cfg.errors) as world:
-        for k, (study, s, v, r, noise) in enumerate(jobs):
-            t0 = time.perf_counter()
-            rows.append(_pass(world, cfg, s, v, r, noise, study))
-            rows[-1]["wall_s"] = time.perf_counter() - t0
-            ctx.progress(f"{study} {s} {v:g} cm/s", (k + 1) / len(jobs))
+    from mmpa.experiments.executor import SerialExecutor
+
+    cfg_json = cfg.model_dump_json()
+    tasks = [
+        (
+            {"study": study, "strategy": s, "speed_cm_s": v, "rep": r},
+            pass_job,
+            (cfg_json, study, s, v, r, noise.model_dump_json()),
+        )
+        for study, s, v, r, noise in jobs
+    ]
+    ex = ctx.executor if ctx.executor is not None else SerialExecutor()
+    try:
+        recs = ex.run(tasks, lambda done, total, rec: ctx.progress("passes", done / total))
+    finally:
+        clear_worlds()
+        if ctx.executor is None:
+            ex.close()
+    rows = [{**x["result"], "worker_rss_mb": x["worker_rss_mb"]} for x in recs]
 
     main = [r for r in rows if r["study"] == "main"]
     summary: dict[str, Any] = {"passes": len(rows), "repetitions": reps}
