@@ -47,6 +47,8 @@ from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
 from mmpa.sim.world import SimWorld
 
 PAPER = "paper 001 (Zhou et al. 2020) §4.3.1, Fig. 10 (reflectors occluded by people)"
+#: the runner may run this experiment's runs on an executor (``--workers``, ``--executor``)
+PARALLEL_TRIALS = True
 LABELS = {
     "amcl": "AMCL",
     "trilateration": "Trilateration only",
@@ -305,22 +307,42 @@ def _visible_count(cfg: Config, mount: np.ndarray | None = None) -> list[dict[st
     return rows
 
 
+def dropout_job(cfg_json: str, k: int, mounts: dict[str, list[float] | None]) -> dict:
+    """Dropout run ``k`` (a worker job): ``{"rows", "trace"}`` (the trace only for run 0,
+    the one plotted). Its world and generators are its own (``episode=k``, ``[seed, k]``)."""
+    cfg = Config.model_validate_json(cfg_json)
+    m = {k2: None if v is None else np.asarray(v, float) for k2, v in mounts.items()}
+    rows, trace = _dropout_run(cfg, k, m)
+    return {"rows": rows, "trace": trace if k == 0 else None}
+
+
+def visible_job(cfg_json: str, mount: list[float] | None) -> list[dict[str, Any]]:
+    """The visible-reflector study (a worker job): its rows (``episode=999``)."""
+    cfg = Config.model_validate_json(cfg_json)
+    return _visible_count(cfg, None if mount is None else np.asarray(mount, float))
+
+
 def run(cfg: Config, ctx: Context) -> Outcome:
     for m in cfg.methods:
         if m not in METHODS:
             raise ValueError(f"unknown method {m!r}; valid: {', '.join(METHODS)}")
+    from mmpa.experiments.executor import SerialExecutor
+
     n = cfg.trials if cfg.trials is not None else 1
-    rows: list[dict[str, Any]] = []
-    trace0: dict[str, Any] = {}
     mounts = method_mounts(cfg, [*cfg.methods, "enhanced"], cfg.site)
-    for k in range(n):
-        r, tr = _dropout_run(cfg, k, mounts)
-        rows += r
-        if k == 0:
-            trace0 = tr
-        ctx.progress("dropout runs", (k + 1) / n)
-    vis_rows = _visible_count(cfg, mounts["enhanced"])
-    ctx.progress("visible reflectors", 1.0)
+    ml = {m: None if v is None else [float(x) for x in v] for m, v in mounts.items()}
+    cfg_json = cfg.model_dump_json()
+    jobs: list = [({"run": k}, dropout_job, (cfg_json, k, ml)) for k in range(n)]
+    jobs.append(({"visible_counts": True}, visible_job, (cfg_json, ml["enhanced"])))
+    ex = ctx.executor if ctx.executor is not None else SerialExecutor()
+    try:
+        recs = ex.run(jobs, lambda done, total, r: ctx.progress("runs", done / total))
+    finally:
+        if ctx.executor is None:
+            ex.close()
+    rows: list[dict[str, Any]] = [x for r in recs[:n] for x in r["result"]["rows"]]
+    trace0: dict[str, Any] = {k: np.asarray(v) for k, v in recs[0]["result"]["trace"].items()}
+    vis_rows = recs[n]["result"]
     summary: dict[str, Any] = {"runs": n, "methods": {}}
     cal = next((v for v in mounts.values() if v is not None), None)
     summary["calibrated_mount"] = None if cal is None else [float(x) for x in cal]
