@@ -26,7 +26,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
+from mmpa.experiments.runner import Context, Outcome, markdown_table, run_trials, stats
 from mmpa.fiducial_search import SearchConfig, make_strategy, run_pass
 from mmpa.sim.error_model import ErrorModelConfig
 from mmpa.sim.moving_base import KinematicMovingBase, MovingBaseNoise
@@ -207,8 +207,6 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             for v in cfg.tilt_speeds_cm_s
             for r in range(reps)
         ]
-    from mmpa.experiments.executor import SerialExecutor
-
     cfg_json = cfg.model_dump_json()
     tasks = [
         (
@@ -218,13 +216,10 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         )
         for study, s, v, r, noise in jobs
     ]
-    ex = ctx.executor if ctx.executor is not None else SerialExecutor()
     try:
-        recs = ex.run(tasks, lambda done, total, rec: ctx.progress("passes", done / total))
+        recs = run_trials(ctx, tasks, "passes")
     finally:
         clear_worlds()
-        if ctx.executor is None:
-            ex.close()
     rows = [{**x["result"], "worker_rss_mb": x["worker_rss_mb"]} for x in recs]
 
     main = [r for r in rows if r["study"] == "main"]

@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from mmpa.experiments.perception_data import LOOK_HEIGHT, LOOK_TARGET, REGION
-from mmpa.experiments.runner import Context, Outcome, markdown_table
+from mmpa.experiments.runner import Context, Outcome, markdown_table, run_trials
 from mmpa.perception import CLASSES, LIGHTING_CONDITIONS
 from mmpa.servo.grasp import GraspConfig
 from mmpa.sim.error_model import ErrorModelConfig
@@ -496,17 +496,13 @@ def grasp_job(
 
 
 def run_jobs(ctx: Context, jobs: list, stage: str) -> list[dict[str, Any]]:
-    """``jobs`` on ``ctx.executor`` (None: in this process): their rows in job order, each
-    with the trial's wall time ``trial_s`` and its worker's peak memory ``worker_rss_mb``."""
-    from mmpa.experiments.executor import SerialExecutor
-
-    ex = ctx.executor if ctx.executor is not None else SerialExecutor()
+    """``jobs`` on ``ctx.executor`` (:func:`~mmpa.experiments.runner.run_trials`): their rows
+    in job order, each with the trial's wall time ``trial_s`` and its worker's peak memory
+    ``worker_rss_mb``; this process's twins closed after."""
     try:
-        recs = ex.run(jobs, lambda done, total, rec: ctx.progress(stage, done / total))
+        recs = run_trials(ctx, jobs, stage)
     finally:
         clear_twins()
-        if ctx.executor is None:
-            ex.close()
     return [
         {**r["result"], "trial_s": r["trial_s"], "worker_rss_mb": r["worker_rss_mb"]} for r in recs
     ]

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
+from mmpa.experiments.runner import Context, Outcome, markdown_table, run_trials, stats
 from mmpa.geometry import wrap_angle
 from mmpa.localization.amcl import AMCLConfig
 from mmpa.localization.localizer import METHODS, make_localizer
@@ -300,7 +300,6 @@ def kidnap_job(cfg_json: str, k: int, method: str, mount: list[float] | None) ->
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
-    from mmpa.experiments.executor import SerialExecutor
     from mmpa.experiments.mmpa_common import recording_folder
 
     for m in cfg.methods:
@@ -321,12 +320,7 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         for k in range(cfg.kidnap_trials)
         for m in cfg.methods
     ]
-    ex = ctx.executor if ctx.executor is not None else SerialExecutor()
-    try:
-        recs = ex.run(jobs, lambda done, total, r: ctx.progress("trials", done / total))
-    finally:
-        if ctx.executor is None:
-            ex.close()
+    recs = run_trials(ctx, jobs, "trials")
     rows: list[dict[str, Any]] = []
     traces: dict[str, dict[str, np.ndarray]] = {}
     for r in recs[: n * len(cfg.methods)]:

@@ -36,7 +36,7 @@ import numpy as np
 from pydantic import ConfigDict, Field
 
 from mmpa.experiments.localization import TwinLocalization, method_mounts
-from mmpa.experiments.runner import Context, Outcome, markdown_table, stats
+from mmpa.experiments.runner import Context, Outcome, markdown_table, run_trials, stats
 from mmpa.geometry import wrap_angle
 from mmpa.localization.localizer import METHODS, _observer, make_localizer
 from mmpa.localization.trilateration import trilaterate
@@ -326,20 +326,13 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     for m in cfg.methods:
         if m not in METHODS:
             raise ValueError(f"unknown method {m!r}; valid: {', '.join(METHODS)}")
-    from mmpa.experiments.executor import SerialExecutor
-
     n = cfg.trials if cfg.trials is not None else 1
     mounts = method_mounts(cfg, [*cfg.methods, "enhanced"], cfg.site)
     ml = {m: None if v is None else [float(x) for x in v] for m, v in mounts.items()}
     cfg_json = cfg.model_dump_json()
     jobs: list = [({"run": k}, dropout_job, (cfg_json, k, ml)) for k in range(n)]
     jobs.append(({"visible_counts": True}, visible_job, (cfg_json, ml["enhanced"])))
-    ex = ctx.executor if ctx.executor is not None else SerialExecutor()
-    try:
-        recs = ex.run(jobs, lambda done, total, r: ctx.progress("runs", done / total))
-    finally:
-        if ctx.executor is None:
-            ex.close()
+    recs = run_trials(ctx, jobs, "runs")
     rows: list[dict[str, Any]] = [x for r in recs[:n] for x in r["result"]["rows"]]
     trace0: dict[str, Any] = {k: np.asarray(v) for k, v in recs[0]["result"]["trace"].items()}
     vis_rows = recs[n]["result"]

@@ -53,6 +53,7 @@ __all__ = [
     "experiment_module",
     "markdown_table",
     "run_experiment",
+    "run_trials",
     "stats",
 ]
 
@@ -242,6 +243,20 @@ def run_experiment(
         table = compare_profiles(errors.profile, outcome.summary, others)
         (out / "report.md").write_text(report + table)
     return outcome
+
+
+def run_trials(ctx: Context, jobs: Sequence[Any], stage: str) -> list[dict[str, Any]]:
+    """``jobs`` (:data:`mmpa.experiments.executor.Job`) on ``ctx.executor`` (None: in this
+    process, one after the other), progress reported as ``stage``: their records
+    (``result``, ``trial_s``, ``worker_rss_mb``) in job order."""
+    from mmpa.experiments.executor import SerialExecutor
+
+    ex = ctx.executor if ctx.executor is not None else SerialExecutor()
+    try:
+        return ex.run(jobs, lambda done, total, rec: ctx.progress(stage, done / total))
+    finally:
+        if ctx.executor is None:
+            ex.close()
 
 
 def flatten(d: Any, prefix: str = "") -> dict[str, float]:
