@@ -9,7 +9,12 @@ Two steps, because ``amcl`` is not a dependency of mmpa (keep it in a throwaway 
 ``record`` drives the twin on a short loop (60 scans at 5 Hz) and stores the occupancy grid,
 the lidar mount, the odometry and the scans, and times OUR AMCL on them (2000 particles fixed,
 60 beams, Nav2 defaults otherwise) with both laser models. ``replay`` feeds the same data to
-the C++ filter and prints its median update time and final position error.
+the C++ filter and prints its median update time and final position error. To time ours
+again on the recorded file, without the simulator (and, interleaved with it, the beam model
+of another copy of ``amcl.py``, e.g. the version before a change), alternating with
+``replay`` so that both see the same load:
+
+    .venv/bin/python benchmarks/bench_amcl_cpp.py ours /tmp/amcl_scans.npz [OLD_AMCL_PY]
 
 What the C++ side is: ``amcl`` 0.1.2 (nanobind bindings of Nav2's ``pf`` library, the
 ``DifferentialMotionModel`` and the ``BeamModel``). It compiles in the BEAM model only (no
@@ -17,15 +22,16 @@ likelihood field), its ``update`` runs the filter on every call (no ``update_min
 like our ``force=True``), and it takes a ``0/100/-1`` grid with rows along ``y``. So the
 like-for-like figure is our beam model against it; our likelihood field is printed beside.
 
-Measured on the shared 2-core dev machine (load ~4, medians of 60 updates): C++ beam model
-21.2-21.6 ms (final error 17.7 cm); ours 87 ms before the ray cast's lookup table
-(``AMCL._skip_table``), 39 ms after (7.4 cm, identical ranges); our likelihood field
-2.3-2.5 ms (7.5 cm).
+Measured on the shared 2-core dev machine (load average ~4, medians of 60 updates; ``ours``
+and ``replay`` alternated 3 times): C++ beam model 21.1-21.8 ms (final error 17.7 cm); ours
+87 ms stepping every point, 39-44 ms with the former skip table, 11.9-12.2 ms now (the
+clearance of each cell's square, unclipped, ceil; compacted block-wise march:
+``AMCL.raycast``), final error 7.4 cm both (the same ranges); our likelihood field
+2.4-2.5 ms (7.5 cm).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import sys
 import time
@@ -38,7 +44,6 @@ MAX_BEAMS = 60
 
 def record(path: str) -> None:
     os.environ.setdefault("MUJOCO_GL", "osmesa")
-    from mmpa.localization.amcl import AMCL, AMCLConfig
     from mmpa.sim.twin_maps import laser_pose2d, twin_map
     from mmpa.sim.world import SimWorld
 
@@ -54,27 +59,6 @@ def record(path: str) -> None:
             truth.append(w.truth.base_pose2d())
         w.base.stop()
         s0 = w.lidar.scan()
-    for model in ("likelihood_field", "beam"):
-        cfg = AMCLConfig(
-            min_particles=N_PARTICLES,
-            max_particles=N_PARTICLES,
-            max_beams=MAX_BEAMS,
-            laser_model_type=model,  # type: ignore[arg-type]
-        )
-        amcl = AMCL(grid, lp, cfg, np.random.default_rng(0))
-        amcl.set_initial_pose(truth[0])
-        ts = []
-        for o, r in zip(odo, scans, strict=True):
-            sc = dataclasses.replace(s0, ranges=r)
-            t = time.perf_counter()
-            amcl.update(o, sc, force=True)
-            ts.append(time.perf_counter() - t)
-        e = amcl.pose_at(odo[-1]) - truth[-1]
-        print(
-            f"mmpa AMCL ({model}, {N_PARTICLES} particles, {MAX_BEAMS} beams, "
-            f"{len(ts)} scans): {1000 * np.median(ts):.2f} ms median update, "
-            f"final error {100 * np.hypot(*e[:2]):.1f} cm"
-        )
     np.savez(
         path,
         occ=grid.data,
@@ -85,9 +69,70 @@ def record(path: str) -> None:
         ranges=np.array(scans),
         angles=s0.angles,
         range_max=s0.range_max,
+        scan_meta=np.array(  # LaserScan's angle_min ... range_max, in its order
+            [
+                s0.angle_min,
+                s0.angle_max,
+                s0.angle_increment,
+                s0.time_increment,
+                s0.scan_time,
+                s0.range_min,
+                s0.range_max,
+            ]
+        ),
         truth=np.array(truth),
     )
     print(f"recorded {len(odo)} scans, grid {grid.width} x {grid.height} -> {path}")
+    ours(path)
+
+
+def ours(path: str, old: str | None = None) -> None:
+    """Time our AMCL (and, with ``old``, the AMCL of another copy of ``amcl.py``) on the
+    recorded scans: both laser models, then the beam model of each module interleaved."""
+    import importlib.util
+
+    from mmpa.localization import amcl as new_mod
+    from mmpa.localization.maps import OccupancyGrid
+    from mmpa.robot.interfaces import LaserScan
+
+    d = np.load(path)
+    grid = OccupancyGrid(d["occ"], float(d["res"]), tuple(float(v) for v in d["origin"]))
+    meta = d["scan_meta"]
+    mods = {"mmpa": new_mod}
+    if old:
+        spec = importlib.util.spec_from_file_location("old_amcl", old)
+        assert spec is not None and spec.loader is not None
+        mods["old"] = importlib.util.module_from_spec(spec)
+        sys.modules["old_amcl"] = mods["old"]
+        spec.loader.exec_module(mods["old"])
+    runs = [("mmpa", "likelihood_field")] + [(name, "beam") for name in mods]
+    filters, times = {}, {}
+    for name, model in runs:
+        m = mods[name]
+        cfg = m.AMCLConfig(
+            min_particles=N_PARTICLES,
+            max_particles=N_PARTICLES,
+            max_beams=MAX_BEAMS,
+            laser_model_type=model,
+        )
+        f = m.AMCL(grid, d["laser"], cfg, np.random.default_rng(0))
+        f.set_initial_pose(d["truth"][0])
+        filters[name, model], times[name, model] = f, []
+    for o, r in zip(d["odom"], d["ranges"], strict=True):  # interleaved: the same load
+        sc = LaserScan(*meta[:7], ranges=r, intensities=np.zeros_like(r))
+        for key, f in filters.items():
+            t = time.perf_counter()
+            f.update(o, sc, force=True)
+            times[key].append(time.perf_counter() - t)
+    for (name, model), f in filters.items():
+        e = f.pose_at(d["odom"][-1]) - d["truth"][-1]
+        ts = times[name, model]
+        print(
+            f"{name} AMCL ({model}, {N_PARTICLES} particles, {MAX_BEAMS} beams, "
+            f"{len(ts)} scans): {1000 * np.median(ts):.2f} ms median update, "
+            f"final error {100 * np.hypot(*e[:2]):.1f} cm"
+        )
+    print(f"load average {os.getloadavg()[0]:.2f} (1 min)")
 
 
 def replay(path: str) -> None:
@@ -135,4 +180,4 @@ def replay(path: str) -> None:
 
 
 if __name__ == "__main__":
-    {"record": record, "replay": replay}[sys.argv[1]](sys.argv[2])
+    {"record": record, "replay": replay, "ours": ours}[sys.argv[1]](*sys.argv[2:])

@@ -251,6 +251,101 @@ def test_raycast_equals_marching_every_point(world, grid) -> None:
     assert (fast < 12.0).mean() > 0.5  # the test sees hits, not just max range
 
 
+def _random_room(seed: int):
+    """A 10 m x 6 m room at 5 cm with random boxes (no simulator)."""
+    from mmpa.localization.maps import Box2D, rasterize
+
+    rng = np.random.default_rng(seed)
+    boxes = [
+        Box2D((rng.uniform(0, 10), rng.uniform(0, 6)), (rng.uniform(0.1, 1.5), rng.uniform(0.1, 1)))
+        for _ in range(12)
+    ]
+    boxes += [Box2D((5.0, 0.0), (10.0, 0.1)), Box2D((0.0, 3.0), (0.1, 6.0))]  # two walls
+    return rasterize(boxes, (0.0, 0.0, 10.0, 6.0), 0.05), rng
+
+
+def _march_all(amcl: AMCL, particles, angles, max_range):
+    """Reference ray cast, vectorized over rays: every half-cell point ``k h`` of every beam,
+    the first in an occupied cell or off the map (as :func:`_march`, no skip table)."""
+    g = amcl.grid
+    lx, ly, lth = amcl.laser_pose
+    x, y, th = particles.T
+    ox, oy = x + np.cos(th) * lx - np.sin(th) * ly, y + np.sin(th) * lx + np.cos(th) * ly
+    a = (th + lth)[:, None] + angles[None, :]
+    out = np.full(a.shape, max_range)
+    todo = np.ones(a.shape, dtype=bool)
+    h = g.resolution / 2
+    for k in range(1, int(max_range / h) + 1):
+        px, py = ox[:, None] + k * h * np.cos(a), oy[:, None] + k * h * np.sin(a)
+        c = np.floor((px - g.origin[0]) / g.resolution).astype(int)
+        r = np.floor((py - g.origin[1]) / g.resolution).astype(int)
+        inside = (c >= 0) & (c < g.width) & (r >= 0) & (r < g.height)
+        hit = ~inside
+        hit[inside] = g.occupied[r[inside], c[inside]]
+        out[todo & hit] = k * h
+        todo &= ~hit
+    return out
+
+
+@pytest.mark.parametrize("max_range", [3.0, 20.0])
+def test_raycast_equals_marching_every_point_on_random_rooms(max_range: float) -> None:
+    """1500 particles (some off the map, some in obstacles) x 30 beams (two blocks of rays):
+    the skip-table march returns exactly the first occupied / off-map point, or max range."""
+    grid, rng = _random_room(3)
+    amcl = AMCL(grid, np.array([0.2, 0.05, 0.1]), AMCLConfig(laser_model_type="beam"), rng)
+    P = np.column_stack(
+        [rng.uniform(-0.5, 10.5, 1500), rng.uniform(-0.5, 6.5, 1500), rng.uniform(-4, 4, 1500)]
+    )
+    ang = np.linspace(-2.3, 2.3, 30)
+    fast = amcl.raycast(P, ang, max_range)
+    assert np.array_equal(fast, _march_all(amcl, P, ang, max_range))
+    assert (fast < max_range).mean() > 0.2  # hits tested
+    if max_range < 5.0:
+        assert (fast == max_range).mean() > 0.05  # and beams that run out of range
+
+
+def test_skip_table_is_each_cells_clearance() -> None:
+    """The jump per cell: ``max(ceil(D / h), 1)`` with ``D`` the least distance between the
+    cell's square and any occupied or off-map cell's square (brute force over all pairs)."""
+    grid, _ = _random_room(5)
+    sub = grid.data[40:70, 100:140]  # a 2 m x 1.5 m piece, some boxes in it
+    from mmpa.localization.maps import OccupancyGrid
+
+    g = OccupancyGrid(sub, 0.05)
+    amcl = AMCL(g, np.zeros(3), AMCLConfig(laser_model_type="beam"))
+    table = amcl._skip_table().reshape(g.height + 2, g.width + 2)
+    occ = np.pad(g.occupied, 1, constant_values=True)  # the border ring: off the map
+    assert 0 < g.occupied.mean() < 0.5
+    orr, occ_c = np.nonzero(occ)
+    for r, c in zip(*np.nonzero(~occ), strict=True):
+        gap = np.hypot(np.maximum(np.abs(orr - r) - 1, 0), np.maximum(np.abs(occ_c - c) - 1, 0))
+        D = gap.min() * g.resolution
+        assert table[r, c] == max(np.ceil(D / (g.resolution / 2) - 1e-9), 1)
+    assert np.all(table[occ] == 0)
+
+
+def test_beam_model_is_nav2s_mixture(world, grid) -> None:
+    """The beam model against Nav2's ``BeamModel`` loop, beam by beam (with ranges shorter
+    than expected, so the z_short part is exercised)."""
+    c = AMCLConfig(laser_model_type="beam", max_beams=40, z_short=0.2, lambda_short=0.5)
+    amcl = AMCL(grid, laser_pose2d(world), c, np.random.default_rng(2))
+    amcl.set_initial_pose(world.truth.base_pose2d())
+    r, a = amcl._beams(world.lidar.scan())
+    P = amcl.particles[:300]
+    p = amcl.beam_model(P, r, a)
+    exp_r = amcl.raycast(P, a, amcl._rmax)
+    want = np.ones(len(P))
+    for j in range(len(r)):
+        z = r[j] - exp_r[:, j]
+        pz = c.z_hit * np.exp(-(z * z) / (2 * c.sigma_hit * c.sigma_hit))
+        pz += np.where(z < 0, c.z_short * c.lambda_short * np.exp(-c.lambda_short * r[j]), 0.0)
+        pz += c.z_max if r[j] == amcl._rmax else 0.0
+        pz += c.z_rand / amcl._rmax if r[j] < amcl._rmax else 0.0
+        want += pz * pz * pz
+    assert np.mean(exp_r > r[None, :]) > 0.05  # z < 0 for some beams
+    np.testing.assert_allclose(p, want, rtol=1e-12)
+
+
 def test_product_likelihood_field_finds_the_heading(world, grid) -> None:
     """The sharp (product-form, bilinear) field used with < 3 reflectors resolves heading to
     a few mrad at the truth; Nav2's sum-of-cubes field hardly tells 20 mrad apart."""

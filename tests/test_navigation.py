@@ -310,3 +310,144 @@ def test_start_in_the_inscribed_band_is_opened_for_that_search_only() -> None:
     assert np.array_equal(cm.graph(3.0).csr.data, before)  # closed again afterwards
     p = plan_path(cm, g.cell_to_world(s[1], s[0]), g.cell_to_world(goal[1], goal[0]))
     assert np.allclose(p[0], g.cell_to_world(s[1], s[0]))
+
+
+def _floor_map(seed: int):
+    """A 20 m x 10 m floor: a corridor along x with 1 m doors into rows of rooms on both sides
+    (one room closed off), furniture in the rooms."""
+    rng = np.random.default_rng(seed)
+    W, H, t = 20.0, 10.0, 0.15
+    boxes = [
+        Box2D((W / 2, 0.0), (W, t)),
+        Box2D((W / 2, H), (W, t)),
+        Box2D((0.0, H / 2), (t, H)),
+        Box2D((W, H / 2), (t, H)),
+    ]
+    for y in (4.0, 6.0):  # corridor walls, a door per room except the first room below
+        for k, x in enumerate(np.arange(0.0, W, 5.0)):
+            door = x + rng.uniform(1.0, 3.5)
+            if y == 4.0 and k == 0:
+                boxes.append(Box2D((x + 2.5, y), (5.0, t)))
+                continue
+            boxes.append(Box2D(((x + door) / 2, y), (door - x, t)))
+            boxes.append(Box2D(((door + 1.0 + x + 5.0) / 2, y), (x + 4.0 - door, t)))
+    for x in np.arange(5.0, W, 5.0):  # partitions
+        boxes += [Box2D((x, 2.0), (t, 4.0)), Box2D((x, 8.0), (t, 4.0))]
+    for _ in range(8):
+        boxes.append(
+            Box2D(
+                (rng.uniform(0.5, W - 0.5), rng.choice([rng.uniform(1, 3), rng.uniform(7, 9)])),
+                (rng.uniform(0.4, 1.2), rng.uniform(0.4, 1.0)),
+            )
+        )
+    return rasterize(boxes, (-0.3, -0.3, W + 0.3, H + 0.3), 0.05), rng
+
+
+def _reference_costs(cost: np.ndarray, start: tuple[int, int], cw: float) -> np.ndarray:
+    """Cheapest cost from ``start`` to every cell (H, W) by a plain full Dijkstra on a graph
+    built here from the planner's model (independent of its graph, radii and proofs)."""
+    from scipy import sparse
+    from scipy.sparse import csgraph
+
+    H, W = cost.shape
+    rr, qq = np.mgrid[0:H, 0:W]
+    src, dst, w = [], [], []
+    for dr, dq in itertools.product((-1, 0, 1), repeat=2):
+        if (dr, dq) == (0, 0):
+            continue
+        r2, q2 = rr + dr, qq + dq
+        ok = (r2 >= 0) & (r2 < H) & (q2 >= 0) & (q2 < W) & (cost < 254)
+        ok[ok] &= cost[r2[ok], q2[ok]] < 253  # moves into the inscribed band: never
+        src.append((rr * W + qq)[ok])
+        dst.append((r2 * W + q2)[ok])
+        w.append(np.hypot(dr, dq) * (1.0 + cw * cost[r2[ok], q2[ok]] / 252.0))
+    m = sparse.csr_matrix(
+        (np.concatenate(w), (np.concatenate(src), np.concatenate(dst))), shape=(H * W, H * W)
+    )
+    return csgraph.dijkstra(m, indices=start[0] * W + start[1]).reshape(H, W)
+
+
+@pytest.mark.parametrize("radii", ["estimated", "redo", "full"])
+def test_two_ended_search_is_optimal_on_a_floor(monkeypatch, radii: str) -> None:
+    """The search from both ends with its optimality proof finds the optimal cost of a plain
+    Dijkstra, also between cells in the inscribed band (opened, as plan_path does), and None
+    into the closed room; the graph is closed again afterwards. ``redo``: radii that just
+    miss the proof (``a + b = d* + w_max - 0.5``: the balls meet, the proof fails, the
+    searches are redone); ``full``: radii too small to meet (the full search decides)."""
+    import mmpa.navigation.planner as planner
+
+    if radii != "estimated":
+        monkeypatch.setattr(planner, "_ESTIMATE_SCALE", 1.0 if radii == "redo" else 0.0)
+        monkeypatch.setattr(planner, "_ESTIMATE_MARGIN", 0.0)
+    calls: list[int] = []
+    real = planner.csgraph.dijkstra
+
+    def counting(*args, **kwargs):
+        calls[-1] += 1
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(planner, "csgraph", type("Counted", (), {"dijkstra": counting}))
+    g, rng = _floor_map(1)
+    cm = CostMap(g, PlannerConfig())
+    graph = cm.graph(3.0)
+    data0, rev0 = graph.csr.data.copy(), graph.rev.data.copy()
+    free = np.argwhere(cm.dist > 0.5)
+    band = np.argwhere((cm.cost == 253.0) & (cm.dist > 0.25))
+    pairs = [tuple(free[rng.choice(len(free), 2)]) for _ in range(10)]
+    pairs += [tuple(band[rng.choice(len(band), 2)]) for _ in range(4)]
+    xy = g.cell_to_world(free[:, 1], free[:, 0])
+    closed = free[(xy[:, 0] < 4.5) & (xy[:, 1] < 3.5)]  # the room without a door
+    pairs.append((closed[0], free[-1]))
+    rows, cols = np.mgrid[0 : g.height, 0 : g.width]
+    n_unreachable = 0
+    for s, e in pairs:
+        s, e = (int(s[0]), int(s[1])), (int(e[0]), int(e[1]))
+        cost2, opened = cm.cost.copy(), []
+        for r, q in (s, e):  # plan_path's endpoint clearance
+            near = ((rows - r) ** 2 + (cols - q) ** 2 <= (0.35 / 0.05) ** 2) & (cost2 == 253.0)
+            cost2[near] = 200.0
+            opened += [(int(a), int(b), 200.0) for a, b in zip(rows[near], cols[near], strict=True)]
+        truth = _reference_costs(cost2, s, 3.0)[e]
+        if radii == "redo":  # the search's total radius a + b = estimate + w_max
+            monkeypatch.setattr(graph, "estimate", lambda *_, t=truth: t - 0.5)
+        calls.append(0)
+        cells = graph.search(s, e, opened)
+        if not np.isfinite(truth):
+            assert cells is None
+            n_unreachable += 1
+            continue
+        assert cells is not None and cells[0] == s and cells[-1] == e
+        assert _path_cost(cells, cost2, 3.0) == pytest.approx(truth, rel=1e-9)
+        assert np.array_equal(graph.csr.data, data0) and np.array_equal(graph.rev.data, rev0)
+    assert n_unreachable >= 1
+    # which branches ran (dijkstra calls: estimate, forward, backward, redo x2, full)
+    if radii == "estimated":
+        assert calls.count(3) >= 8  # most pairs proven on the first try
+    elif radii == "redo":
+        # forward and backward twice (the estimate is patched): redone with mu + w_max
+        assert calls.count(4) >= 8
+    else:
+        assert calls.count(4) >= 8  # the balls never met: the full search
+
+
+def test_plan_path_on_a_floor_is_optimal_and_clear() -> None:
+    """plan_path (two-ended search + shortcut) between rooms: the path's cost (cells of the
+    optimal search path) equals the reference Dijkstra's, and the shortcut path keeps to the
+    non-lethal cells."""
+    g, rng = _floor_map(2)
+    cm = CostMap(g, PlannerConfig())
+    free = np.argwhere(cm.dist > 0.6)
+    for _ in range(3):
+        s, e = free[rng.choice(len(free), 2)]
+        truth = _reference_costs(cm.cost, (int(s[0]), int(s[1])), 3.0)[int(e[0]), int(e[1])]
+        if not np.isfinite(truth):
+            with pytest.raises(UnreachableError):
+                plan_path(cm, g.cell_to_world(s[1], s[0]), g.cell_to_world(e[1], e[0]))
+            continue
+        cells = cm.graph(3.0).search((int(s[0]), int(s[1])), (int(e[0]), int(e[1])), [])
+        assert _path_cost(cells, cm.cost, 3.0) == pytest.approx(truth, rel=1e-9)
+        p = plan_path(cm, g.cell_to_world(s[1], s[0]), g.cell_to_world(e[1], e[0]))
+        for a, b in itertools.pairwise(p):
+            pts = a + np.linspace(0, 1, 200)[:, None] * (b - a)
+            c, r = g.world_to_cell(pts)
+            assert cm.cost[r, c].max() < 254
