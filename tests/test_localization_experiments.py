@@ -38,7 +38,16 @@ def test_localization_experiment_small(tmp_path) -> None:
 
 
 def test_reflector_dropout_small(tmp_path) -> None:
-    run_experiment(
+    """A dropout run on a short route, recorded (``--record``): trilateration loses the robot
+    while people hide the reflectors, the enhanced AMCL does not; the bag's estimates of the
+    enhanced AMCL against its recorded truth give the row's peak errors during and after
+    the dropout."""
+    import numpy as np
+
+    from mmpa.backends.bag import BagPlayback, bag_topics, read_messages
+    from mmpa.bags import messages as rm
+
+    out = run_experiment(
         "reflector-dropout",
         tmp_path,
         trials=1,
@@ -51,7 +60,20 @@ def test_reflector_dropout_small(tmp_path) -> None:
             "subsets_per_count=1",
             "settle_scans=5",
         ],
+        record=tmp_path / "bags",
     )
+    bag = tmp_path / "bags" / "method-enhanced-site-0-trial-0.mcap"
+    counts = {k: v[1] for k, v in bag_topics(bag).items()}
+    assert counts["/map"] == 1 and counts["/amcl_pose"] == counts["/scan"] > 50
+    from mmpa.experiments.reflector_dropout import Config
+
+    est = [rm.from_pose_cov(m) for m in read_messages(bag, ["/amcl_pose"])["/amcl_pose"]]
+    pb = BagPlayback.open(bag)
+    err = 1000 * np.array([np.hypot(*(p[:2] - pb.truth_at(t)[:2])) for t, p, _ in est])
+    t = (np.arange(len(est)) + 1) / Config().scan_rate  # one estimate per scan step
+    row = next(r for r in out.rows if r.get("method") == "enhanced")
+    assert err[(t >= 5) & (t < 9)].max() == pytest.approx(row["err_peak_during_mm"], rel=1e-9)
+    assert err[t >= 9].max() == pytest.approx(row["err_peak_after_mm"], rel=1e-9)
     s = json.loads((tmp_path / "summary.json").read_text())
     tri, enh = s["methods"]["trilateration"], s["methods"]["enhanced"]
     # trilateration alone loses the robot while the reflectors are hidden; ours does not

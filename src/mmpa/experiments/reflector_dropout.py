@@ -30,6 +30,7 @@ default); its seed, the robot instance, follows ``seed`` unless ``errors.seed`` 
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -49,6 +50,8 @@ from mmpa.sim.world import SimWorld
 PAPER = "paper 001 (Zhou et al. 2020) §4.3.1, Fig. 10 (reflectors occluded by people)"
 #: the runner may run this experiment's runs on an executor (``--workers``, ``--executor``)
 PARALLEL_TRIALS = True
+#: every dropout run can record itself to a bag of its own (``mmpa experiment --record DIR``)
+RECORDS_TRIALS = True
 LABELS = {
     "amcl": "AMCL",
     "trilateration": "Trilateration only",
@@ -136,10 +139,19 @@ def _route(world: SimWorld, cm: CostMap, cfg: Config) -> np.ndarray:
 
 
 def _dropout_run(
-    cfg: Config, k: int, mounts: dict[str, np.ndarray | None] | None = None
+    cfg: Config,
+    k: int,
+    mounts: dict[str, np.ndarray | None] | None = None,
+    record: str | None = None,
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Dropout run ``k``: rows per method and the trace. ``record``: a folder for the run's
+    ROS 2 bag (``method-M-site-0-trial-k.mcap``, ``M`` the enhanced AMCL when it runs, else
+    the first method: the scans as the localizers read them, with the people in them, the
+    odometry, the map, M's estimates and particles, the truth; ``--record``)."""
+    from contextlib import ExitStack
+
     rng = np.random.default_rng([cfg.seed, k])
-    with SimWorld(errors=cfg.errors, site="0", episode=k) as world:
+    with SimWorld(errors=cfg.errors, site="0", episode=k) as world, ExitStack() as stack:
         grid = twin_map(world)
         cm = CostMap(twin_nav_map(world))
         route = _route(world, cm, cfg)
@@ -156,6 +168,17 @@ def _dropout_run(
             )
             for m in cfg.methods
         }
+        sensors: Any = world  # where the localizers' scans and odometry are read
+        if record is not None:  # the same run, observed (the harness keeps the world)
+            from mmpa.bags import BagWriter, Recorder
+            from mmpa.experiments.mmpa_common import trial_bag_name
+
+            m0 = "enhanced" if "enhanced" in locs else cfg.methods[0]
+            path = Path(record) / trial_bag_name({"method": m0}, "0", k)
+            bag = stack.enter_context(BagWriter(path, overwrite=True))
+            rec = stack.enter_context(Recorder(bag, world))
+            rec.write_map(grid)
+            sensors, locs[m0] = rec.world(), rec.localizer(locs[m0])
         # one rough initial pose for every method (the operator's), so that a trial (its
         # initial guess, which reflectors stay visible) does not depend on how many methods
         # run beside it
@@ -189,8 +212,8 @@ def _dropout_run(
                 break
             world.base.set_velocity(v, w)
             world.step(dt)
-            odom = world.odometry.odometry().pose
-            scan = world.lidar.scan()
+            odom = sensors.odometry.odometry().pose
+            scan = sensors.lidar.scan()
             truth = world.truth.base_pose2d()
             trace["t"].append(world.time - t0)
             vis = None
@@ -307,12 +330,14 @@ def _visible_count(cfg: Config, mount: np.ndarray | None = None) -> list[dict[st
     return rows
 
 
-def dropout_job(cfg_json: str, k: int, mounts: dict[str, list[float] | None]) -> dict:
+def dropout_job(
+    cfg_json: str, k: int, mounts: dict[str, list[float] | None], record: str | None = None
+) -> dict:
     """Dropout run ``k`` (a worker job): ``{"rows", "trace"}`` (the trace only for run 0,
     the one plotted). Its world and generators are its own (``episode=k``, ``[seed, k]``)."""
     cfg = Config.model_validate_json(cfg_json)
     m = {k2: None if v is None else np.asarray(v, float) for k2, v in mounts.items()}
-    rows, trace = _dropout_run(cfg, k, m)
+    rows, trace = _dropout_run(cfg, k, m, record)
     return {"rows": rows, "trace": trace if k == 0 else None}
 
 
@@ -330,7 +355,10 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     mounts = method_mounts(cfg, [*cfg.methods, "enhanced"], cfg.site)
     ml = {m: None if v is None else [float(x) for x in v] for m, v in mounts.items()}
     cfg_json = cfg.model_dump_json()
-    jobs: list = [({"run": k}, dropout_job, (cfg_json, k, ml)) for k in range(n)]
+    from mmpa.experiments.mmpa_common import recording_folder
+
+    rec = recording_folder()  # mmpa experiment --record
+    jobs: list = [({"run": k}, dropout_job, (cfg_json, k, ml, rec)) for k in range(n)]
     jobs.append(({"visible_counts": True}, visible_job, (cfg_json, ml["enhanced"])))
     recs = run_trials(ctx, jobs, "runs")
     rows: list[dict[str, Any]] = [x for r in recs[:n] for x in r["result"]["rows"]]
