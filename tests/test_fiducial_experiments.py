@@ -5,6 +5,8 @@ from __future__ import annotations
 import csv
 import json
 
+import pytest
+
 from mmpa.experiments.runner import run_experiment
 
 
@@ -29,12 +31,27 @@ def test_fiducial_search_experiment_small(tmp_path) -> None:
         tmp_path / "alone",
         trials=1,
         overrides=["speeds_cm_s=[3.0]", "strategies=[spiral]", "tilt_study=false"],
+        record=tmp_path / "bags",  # and recorded (issue 20): the same pass
     )
     drop = {"wall_s", "worker_rss_mb"}
     a = {k: v for k, v in alone.rows[0].items() if k not in drop}
     b = {k: v for k, v in out.rows[3].items() if k not in drop}
     assert a["strategy"] == "spiral" and a["speed_cm_s"] == 3.0 and a["intercepted"] >= 1
     assert a == b
+    # its bag: every state of the kinematic twin, the arm and the photosensor beam
+    import numpy as np
+
+    from mmpa.backends.bag import bag_topics, read_messages
+    from mmpa.bags import messages as rm
+
+    bag = tmp_path / "bags" / "study-main-strategy-spiral-speed_cm_s-3.0-site-0-trial-0.mcap"
+    counts = {k: v[1] for k, v in bag_topics(bag).items()}
+    assert counts["/photosensor"] == counts["/joint_states"] == counts["/truth/tcp_pose"] > 100
+    beam = read_messages(bag, ["/photosensor", "/joint_states"])
+    r = np.array([m.range for m in beam["/photosensor"]])
+    assert np.isfinite(r).any() and np.all(r[np.isfinite(r)] <= 0.5)  # within max_range
+    t = [rm.from_joint_state(m)[0] for m in beam["/joint_states"]]
+    assert t[-1] - t[0] == pytest.approx(a["pass_duration_s"], abs=1e-6)
     rows = list(csv.DictReader(open(tmp_path / "results.csv")))
     assert len(rows) == 2 * 2 + 2  # main passes + tilt study
     for r in rows:

@@ -92,8 +92,8 @@ def test_the_trial_bag_holds_the_trial(ipe_runs) -> None:
 def test_an_experiment_that_cannot_record_says_so(tmp_path) -> None:
     from mmpa.experiments.runner import run_experiment
 
-    with pytest.raises(ConfigError, match="'localization' cannot record"):
-        run_experiment("localization", tmp_path / "out", trials=1, record=tmp_path / "bags")
+    with pytest.raises(ConfigError, match="'planning-convergence' cannot record"):
+        run_experiment("planning-convergence", tmp_path / "out", trials=1, record=tmp_path / "bags")
     assert not (tmp_path / "bags").exists() and not (tmp_path / "out").exists()
     (tmp_path / "file").write_text("")
     with pytest.raises(ConfigError, match="is a file"):

@@ -47,6 +47,7 @@ __all__ = [
     "pose_array",
     "pose_cov_stamped",
     "pose_stamped",
+    "range_msg",
     "reflector_markers",
     "rgb_image",
     "stamp_ns",
@@ -65,6 +66,7 @@ FRAMES = {
     "flange": "flange",
     "tcp": "tcp",
     "camera": "camera_color_optical_frame",
+    "photosensor": "photosensor",
 }
 
 
@@ -346,6 +348,21 @@ def from_camera_info(msg: Any) -> CameraIntrinsics:
         fy=float(K[1, 1]),
         cx=float(K[0, 2]),
         cy=float(K[1, 2]),
+    )
+
+
+def range_msg(
+    stamp: float, frame_id: str, distance: float, max_range: float, fov: float = 0.0
+) -> Any:
+    """``sensor_msgs/Range`` of a single-beam infrared (laser) sensor: ``distance`` m to the
+    first surface on the beam, ``+inf`` when none within ``max_range`` (REP-117)."""
+    return T("sensor_msgs/msg/Range")(
+        header=_header(stamp, frame_id),
+        radiation_type=1,  # INFRARED
+        field_of_view=float(fov),
+        min_range=0.0,
+        max_range=float(max_range),
+        range=float(distance) if math.isfinite(distance) else math.inf,
     )
 
 

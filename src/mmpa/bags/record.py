@@ -84,6 +84,7 @@ TOPICS = {
     "initial_pose": "/initialpose",
     "estimate": "/amcl_pose",
     "particles": "/particlecloud",
+    "photosensor": "/photosensor",
     "truth_base": "/truth/base_pose",
     "truth_tcp": "/truth/tcp_pose",
     "truth_camera": "/truth/camera_pose",
@@ -284,6 +285,19 @@ class Recorder:
         state = self._arm_state(self.stamp(self._world.time))
         if state is not None:
             self._pending.append(state)
+
+    def on_kinematic(self) -> None:
+        """A kinematic twin's state now (:meth:`SimWorld.set_kinematic_state`: no stepping
+        records it): the arm, the true base pose and the tool's photosensor beam
+        (``/photosensor``, ``sensor_msgs/Range``: the distance to the first surface on the
+        beam)."""
+        w = self._world
+        t = self.stamp(w.time)
+        self._arm_and_truth(t)
+        _, dist = w.photosensor.hit()
+        ps = w.nominal.photosensor
+        msg = rm.range_msg(t, rm.FRAMES["photosensor"], dist, ps.max_range)
+        self.writer.write(TOPICS["photosensor"], msg)
 
     def on_scan(self, scan: Any) -> None:
         t = self.stamp(scan.stamp)

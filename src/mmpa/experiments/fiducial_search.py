@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,6 +36,8 @@ from mmpa.sim.world import SimWorld
 PAPER = "paper 002 Fig. 4 (fiducials intercepted and search time vs base speed, simulation)"
 #: the runner may run this experiment's passes on an executor (``--workers``, ``--executor``)
 PARALLEL_TRIALS = True
+#: every pass can record itself to a bag of its own (``mmpa experiment --record DIR``)
+RECORDS_TRIALS = True
 
 PAPER_FIGURES = {
     "stochastic": {"intercepted": 4.27, "search_time": 5.90},
@@ -73,6 +76,7 @@ def _pass(
     rep: int,
     noise: MovingBaseNoise,
     study: str,
+    on_state: Any = None,
 ) -> dict[str, Any]:
     fa = world.scene.fiducial_artifact
     assert fa is not None
@@ -83,7 +87,7 @@ def _pass(
     heading = yaw + math.radians(cfg.heading_deg)
     start = np.array([origin[0], origin[1], heading])
     key = [cfg.seed, rep, round(v_cm * 100), 0 if study == "main" else 1]
-    robot = KinematicMovingBase(world, start, noise, np.random.default_rng(key))
+    robot = KinematicMovingBase(world, start, noise, np.random.default_rng(key), on_state=on_state)
     strat = make_strategy(strategy, tilt_sigma=math.radians(cfg.tilt_sigma_deg))  # type: ignore[arg-type]
     res = run_pass(
         robot,
@@ -175,19 +179,41 @@ def clear_worlds() -> None:
 
 
 def pass_job(
-    cfg_json: str, study: str, strategy: str, v_cm: float, rep: int, noise_json: str
+    cfg_json: str,
+    study: str,
+    strategy: str,
+    v_cm: float,
+    rep: int,
+    noise_json: str,
+    record: str | None = None,
 ) -> dict[str, Any]:
     """One search pass (a worker job): its row. Every draw is the pass's own
-    (``[seed, rep, speed, study]``): a pass is the same whatever ran in the world before."""
+    (``[seed, rep, speed, study]``): a pass is the same whatever ran in the world before.
+    ``record``: a folder for the pass's ROS 2 bag (``study-S-strategy-A-speed_cm_s-V-site-0-
+    trial-R.mcap``: every state of the kinematic twin, the arm's ``/joint_states`` and
+    ``/tf``, the true base and tool poses, the photosensor beam on ``/photosensor``)."""
+    from contextlib import ExitStack
+
     cfg = Config.model_validate_json(cfg_json)
     key = cfg.errors.model_dump_json()
     if key not in _WORLDS:
         clear_worlds()
         _WORLDS[key] = SimWorld(site="0", errors=cfg.errors)
     noise = MovingBaseNoise.model_validate_json(noise_json)
-    t0 = time.perf_counter()
-    row = _pass(_WORLDS[key], cfg, strategy, v_cm, rep, noise, study)
-    row["wall_s"] = time.perf_counter() - t0  # the pass alone (not the world's build)
+    world = _WORLDS[key]
+    with ExitStack() as stack:
+        on_state = None
+        if record is not None:  # the same pass, observed
+            from mmpa.bags import BagWriter, Recorder
+            from mmpa.experiments.mmpa_common import trial_bag_name
+
+            label = {"study": study, "strategy": strategy, "speed_cm_s": v_cm}
+            path = Path(record) / trial_bag_name(label, "0", rep)
+            bag = stack.enter_context(BagWriter(path, overwrite=True))
+            on_state = stack.enter_context(Recorder(bag, world)).on_kinematic
+        t0 = time.perf_counter()
+        row = _pass(world, cfg, strategy, v_cm, rep, noise, study, on_state)
+        row["wall_s"] = time.perf_counter() - t0  # the pass alone (not the world's build)
     return row
 
 
@@ -207,12 +233,15 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             for v in cfg.tilt_speeds_cm_s
             for r in range(reps)
         ]
+    from mmpa.experiments.mmpa_common import recording_folder
+
     cfg_json = cfg.model_dump_json()
+    rec = recording_folder()  # mmpa experiment --record
     tasks = [
         (
             {"study": study, "strategy": s, "speed_cm_s": v, "rep": r},
             pass_job,
-            (cfg_json, study, s, v, r, noise.model_dump_json()),
+            (cfg_json, study, s, v, r, noise.model_dump_json(), rec),
         )
         for study, s, v, r, noise in jobs
     ]

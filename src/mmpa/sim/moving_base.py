@@ -23,6 +23,7 @@ MJCF collimator tubes; the base and arm poses are set kinematically
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -60,8 +61,11 @@ class KinematicMovingBase:
         rng: np.random.Generator | None = None,
         q_arm: Array | None = None,
         max_distance: float = 6.0,
+        on_state: Callable[[], None] | None = None,
     ) -> None:
         self.world = world
+        #: called after every state the twin is set to (e.g. a recorder's ``on_kinematic``)
+        self.on_state = on_state
         self.noise = noise or MovingBaseNoise()
         self.rng = rng or np.random.default_rng(0)
         n = self.noise
@@ -122,6 +126,8 @@ class KinematicMovingBase:
         self.world.set_kinematic_state(
             self.true_base_pose(t), self._q, self.roll, self.pitch, time=t
         )
+        if self.on_state is not None:
+            self.on_state()
 
     # --- MovingRobot ----------------------------------------------------------------------
     def now(self) -> float:
