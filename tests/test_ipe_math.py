@@ -112,3 +112,25 @@ def test_repark_motion_returns_the_arm_base_to_its_taught_pose():
         # and after moving, the arm base is where it was taught
         T_map_B_new = se2_to_T(*se2_compose(parked, motion)) @ M
         np.testing.assert_allclose(T_map_B_new, se2_to_T(*taught) @ M, atol=1e-12)
+
+
+def test_view_consistency_closed_forms():
+    """Two offset estimates that differ by a translation t disagree by |t| at any camera;
+    by a rotation theta about the taught camera's position, by 0 m and theta rad there, and
+    by the chord 2 sin(theta / 2) r at a camera a lever arm r away (about z)."""
+    from mmpa.ipe.loop import view_consistency
+
+    T_Bo_Co = make_T(rpy_to_R(0.3, -0.2, 1.0), [0.4, 0.1, 0.5])
+    t = np.array([0.003, -0.001, 0.002])
+    d, a = view_consistency(make_T(np.eye(3), t), np.eye(4), T_Bo_Co)
+    assert d == pytest.approx(np.linalg.norm(t)) and a == pytest.approx(0.0, abs=1e-7)
+    theta = 0.01
+    c = T_Bo_Co[:3, 3]
+    R = rpy_to_R(0.0, 0.0, theta)
+    about_c = make_T(R, c - R @ c)  # a rotation about the point c
+    d, a = view_consistency(about_c, np.eye(4), T_Bo_Co)
+    assert d == pytest.approx(0.0, abs=1e-12) and a == pytest.approx(theta)
+    other = make_T(np.eye(3), [0.5, -0.2, 0.3])
+    d, _ = view_consistency(about_c, np.eye(4), other)
+    r = np.linalg.norm((other[:3, 3] - c)[:2])  # the lever arm about z
+    assert d == pytest.approx(2 * np.sin(theta / 2) * r)

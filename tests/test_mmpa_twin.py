@@ -91,6 +91,48 @@ def test_ipe_recovers_the_parking_offset_and_the_tool_hits_the_dot(site1):
     assert site1.run_tmma() > 0.03
 
 
+def test_a_witness_view_confirms_the_estimate_or_refuses_a_slid_one(site1, monkeypatch):
+    """``IPEConfig.witness`` (issue 19: a consistency check between equivalent views): a
+    second view 3 cm sideways from the taught viewpoint agrees with the estimate within its
+    tolerance; a final refinement that slid 6 mm at the converged view (injected: the
+    witness's own refinement is left alone) is refused, and no estimate comes out."""
+    import mmpa.ipe.loop as loop
+    from mmpa.geometry import make_T
+
+    def witnessed():
+        a = site1.automation_config()
+        return a.model_copy(
+            update={"ipe": a.ipe.model_copy(update={"witness": 0.03}), "localization_prior": False}
+        )
+
+    site1.park()
+    res = site1.run_ipe(witnessed(), execute=False)
+    assert res.ok, res.reason
+    assert res.ipe.witness_dT_B is not None
+    d, ang = res.ipe.witness_disagreement
+    tol = loop.IPEConfig().witness_tolerance
+    assert d < tol[0] and ang < tol[1], (d, ang)
+    truth = site1.parking_truth()
+    row, _ = ipe_rows(res.ipe, truth)
+    assert row["E_t"] < 3e-3  # the estimate itself as good as without the witness
+
+    photometric, calls = loop._photometric, []
+
+    def slid_once(*args, **kwargs):  # the converged view's refinement slides 6 mm
+        out = photometric(*args, **kwargs)
+        calls.append(out)
+        if out is not None and len(calls) == 1:
+            out = dataclasses.replace(out, T=out.T @ make_T(np.eye(3), [0.006, 0.0, 0.0]))
+        return out
+
+    monkeypatch.setattr(loop, "_photometric", slid_once)
+    site1.park()
+    res = site1.run_ipe(witnessed(), execute=False)
+    assert len(calls) == 2 and calls[0] is not None  # the converged view, the witness
+    assert not res.ok and res.ipe.dT_B is None and "witness view disagrees" in res.ipe.reason
+    assert res.ipe.witness_disagreement[0] > 0.004
+
+
 def test_failed_registration_stops_ipe_and_the_arm_stays(site1):
     site1.park()
     rng = np.random.default_rng(0)

@@ -583,6 +583,7 @@ def ipe_rows(ipe: IPEResult, truth: Array) -> tuple[dict, list[dict]]:
     """Per-trial IPE figures and per-iteration errors (Fig. 9)."""
     e_r, e_t = pose_errors(ipe.dT_B, truth)
     v = T_to_vec6(ipe.dT_B) - T_to_vec6(truth) if ipe.dT_B is not None else np.full(6, np.nan)
+    w = ipe.witness_disagreement
     row = {
         "ipe_ok": ipe.ok,
         "ipe_reason": ipe.reason,
@@ -600,6 +601,9 @@ def ipe_rows(ipe: IPEResult, truth: Array) -> tuple[dict, list[dict]]:
         "register_s_mean": float(
             np.mean([it.seconds_register for it in ipe.iterations]) if ipe.iterations else np.nan
         ),
+        # the witness view against the estimate (IPEConfig.witness; NaN when off)
+        "witness_mm": 1e3 * w[0] if w else np.nan,
+        "witness_deg": float(np.rad2deg(w[1])) if w else np.nan,
     }
     its = []
     for it in ipe.iterations:

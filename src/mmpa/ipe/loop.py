@@ -48,7 +48,7 @@ from mmpa.robot.kinematics import fk, ik_nearest
 
 _log = logging.getLogger(__name__)
 
-__all__ = ["IPE", "IPEConfig", "IPEIteration", "IPEResult", "capture_cloud"]
+__all__ = ["IPE", "IPEConfig", "IPEIteration", "IPEResult", "capture_cloud", "view_consistency"]
 
 
 #: the finer last registration: every 2nd pixel, 4 mm voxels, 15 colored-ICP iterations
@@ -111,6 +111,17 @@ class IPEConfig(BaseModel):
     # when the projective refinement is off or refused (e.g. a textured plane: point-to-plane
     # alone is degenerate there), one more colored registration at 4 mm voxels; None: off
     final: RegistrationConfig | None = FINAL_REFINEMENT
+    # beyond the paper: a witness view (m sideways; None: off). Once converged, the camera
+    # moves this far along its x axis from the taught viewpoint (by the estimate), and the
+    # taught cloud is registered there too (ICP from the estimate's prediction, then the
+    # projective and photometric refinements of the converged view): the two estimates of
+    # the one parking offset must agree within ``witness_tolerance`` (m at the taught
+    # camera, rad; :func:`view_consistency`), else no estimate. Two views near the taught one
+    # are equivalent witnesses (the session's depth distortion cancels alike in both); a
+    # registration that slid into a wrong minimum does not repeat from another viewpoint.
+    # Costs an arm move, a capture and a registration (~0.1-0.2 s of compute).
+    witness: float | None = Field(None, gt=0)
+    witness_tolerance: tuple[float, float] = (0.002, float(np.deg2rad(0.3)))
 
     @field_validator("alpha")
     @classmethod
@@ -170,6 +181,11 @@ class IPEResult:
     # the full-resolution refinement of the converged view (depth + colour when on)
     projective: ProjectiveResult | None = None
     seconds_final: float = 0.0  # the converged view's photometric / 4 mm refinement
+    # the witness view (``IPEConfig.witness``): its estimate of dT_B, how far it lies from
+    # the result's ((m at the taught camera, rad); :func:`view_consistency`), its seconds
+    witness_dT_B: Array | None = None
+    witness_disagreement: tuple[float, float] | None = None
+    seconds_witness: float = 0.0
 
     @property
     def n_iterations(self) -> int:
@@ -181,6 +197,7 @@ class IPEResult:
         return (
             self.seconds_prepare
             + self.seconds_final
+            + self.seconds_witness
             + sum(it.seconds_register for it in self.iterations)
         )
 
@@ -234,6 +251,67 @@ class IPE:
         v = np.asarray(self.robot.arm.qd_max, float) * s
         a = np.asarray(self.robot.arm.qdd_max, float) * s * s
         return float(np.max(np.maximum(dq / v, 2.0 * np.sqrt(dq / a))))
+
+    def _witness(
+        self,
+        arm: Arm,
+        camera: Camera,
+        source: Prepared,
+        src: tuple[Array, Array | None] | None,
+        T_Bo_Co: Array,
+        q: Array,
+        result: IPEResult,
+    ) -> None:
+        """The witness view (``IPEConfig.witness``) of a converged ``result``: sets
+        ``result.witness_*``, and refuses the estimate (``ok`` False, no ``dT_B``) when the
+        witness is out of reach, its registration fails, or it disagrees."""
+        cfg = self.cfg
+        assert cfg.witness is not None and result.dT_B is not None
+        t0 = time.perf_counter()
+        side = make_T(np.eye(3), [cfg.witness, 0.0, 0.0])
+        try:
+            q_w = self.camera_joints(camera_target(result.dT_B, T_Bo_Co) @ side, q)
+        except UnreachableError as e:
+            result.ok, result.dT_B = False, None
+            result.reason = f"the witness view is unreachable: {e}"
+            return
+        arm.move_joints(q_w, self._move_duration(arm, q_w))
+        frame, cloud = capture(camera, cfg.frames, cfg.min_depth, cfg.max_depth)
+        t1 = time.perf_counter()
+        T_Bw_Cw = self.T_arm_base_camera(arm.joint_positions())
+        init = inv(T_Bw_Cw) @ result.dT_B @ T_Bo_Co  # the taught cloud, as the estimate sees it
+        reg = register(source, cloud, cfg.registration, init=init)
+        dT_C = reg.T
+        if reg.ok and cfg.projective is not None and src is not None:
+            cam = self.robot.camera
+            pr = refine_projective(
+                src[0],
+                frame.depth,
+                frame.intrinsics,
+                reg.T,
+                cfg.projective,
+                disparity_fb=cam.depth_focal_native * cam.baseline,
+            )
+            if pr.ok:
+                pc = _photometric(src, cfg, pr, frame, self.robot)
+                dT_C = pc.T if pc is not None else pr.T
+        result.seconds_witness = time.perf_counter() - t1
+        _log.debug("IPE witness view: %.2f s", time.perf_counter() - t0)
+        if not reg.ok:
+            result.ok, result.dT_B = False, None
+            result.reason = f"the witness view's registration failed: {reg.reason}"
+            return
+        result.witness_dT_B = delta_T_B(T_Bw_Cw, dT_C, T_Bo_Co)
+        d, a = view_consistency(result.dT_B, result.witness_dT_B, T_Bo_Co)
+        result.witness_disagreement = (d, a)
+        tol = cfg.witness_tolerance
+        if d > tol[0] or a > tol[1]:
+            result.ok, result.dT_B = False, None
+            result.reason = (
+                f"the witness view disagrees with the estimate by {d * 1e3:.2f} mm / "
+                f"{np.rad2deg(a):.3f} deg at the camera (tolerance {tol[0] * 1e3:.1f} mm / "
+                f"{np.rad2deg(tol[1]):.2f} deg): a registration slid; no estimate"
+            )
 
     def run(
         self,
@@ -389,6 +467,8 @@ class IPE:
                         if fin.ok:
                             result.dT_B = delta_T_B(T_Bk_Ck, fin.T, T_Bo_Co)
                     result.seconds_final = time.perf_counter() - t5
+                if cfg.witness is not None and result.dT_B is not None:
+                    self._witness(arm, camera, source, src, T_Bo_Co, q, result)
                 return result
             if k == cfg.beta:
                 break
@@ -405,6 +485,15 @@ class IPE:
         )
         result.dT_B = None
         return result
+
+
+def view_consistency(dT_B_a: Array, dT_B_b: Array, T_Bo_Co: Array) -> tuple[float, float]:
+    """How far two estimates of the parking offset disagree: the distance (m) between the
+    taught camera's position moved by each, ``|dT_B_a c - dT_B_b c|`` with ``c`` the
+    translation of ``T_Bo_Co`` (4, 4), and the angle (rad) of ``R_a R_b^T``."""
+    c = np.append(np.asarray(T_Bo_Co, float)[:3, 3], 1.0)
+    d = float(np.linalg.norm((np.asarray(dT_B_a) @ c - np.asarray(dT_B_b) @ c)[:3]))
+    return d, _angle(np.asarray(dT_B_a) @ inv(np.asarray(dT_B_b)))
 
 
 def _photometric(
