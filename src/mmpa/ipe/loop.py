@@ -252,6 +252,22 @@ class IPE:
         a = np.asarray(self.robot.arm.qdd_max, float) * s * s
         return float(np.max(np.maximum(dq / v, 2.0 * np.sqrt(dq / a))))
 
+    def _projective(
+        self, src: tuple[Array, Array | None], frame: RGBDFrame, T: Array
+    ) -> ProjectiveResult:
+        """The projective refinement (``cfg.projective``, depth only) of the taught points
+        ``src[0]`` on the view's depth image, from ``T`` (``T_view_taught``, 4x4)."""
+        assert self.cfg.projective is not None
+        cam = self.robot.camera
+        return refine_projective(
+            src[0],
+            frame.depth,
+            frame.intrinsics,
+            T,
+            self.cfg.projective,
+            disparity_fb=cam.depth_focal_native * cam.baseline,
+        )
+
     def _witness(
         self,
         arm: Arm,
@@ -283,15 +299,7 @@ class IPE:
         reg = register(source, cloud, cfg.registration, init=init)
         dT_C = reg.T
         if reg.ok and cfg.projective is not None and src is not None:
-            cam = self.robot.camera
-            pr = refine_projective(
-                src[0],
-                frame.depth,
-                frame.intrinsics,
-                reg.T,
-                cfg.projective,
-                disparity_fb=cam.depth_focal_native * cam.baseline,
-            )
+            pr = self._projective(src, frame, reg.T)
             if pr.ok:
                 pc = _photometric(src, cfg, pr, frame, self.robot)
                 dT_C = pc.T if pc is not None else pr.T
@@ -390,15 +398,7 @@ class IPE:
             if reg.ok and cfg.projective is not None and isinstance(taught, PointCloud):
                 if src is None:  # cropped once per run
                     src = _source(taught, cfg)
-                cam = self.robot.camera
-                pr = refine_projective(
-                    src[0],
-                    frame.depth,
-                    frame.intrinsics,
-                    reg.T,
-                    cfg.projective,
-                    disparity_fb=cam.depth_focal_native * cam.baseline,
-                )
+                pr = self._projective(src, frame, reg.T)
                 if pr.ok:
                     dT_C = pr.T
             t4 = time.perf_counter()
