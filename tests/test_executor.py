@@ -57,6 +57,25 @@ def test_process_executor_returns_job_order_from_other_processes(tmp_path, monke
     assert "OMP_NUM_THREADS" not in os.environ
 
 
+def test_prestarted_workers_are_taken_over_or_stopped(tmp_path):
+    """``prestart`` starts the workers (they import the heavy modules) before the executor
+    exists; the next ProcessExecutor of that size runs its jobs on them. Workers that no
+    executor takes are stopped by ``discard_prestarted``."""
+    ex.prestart("local", 2)
+    pool = ex._PRESTARTED[2]
+    warm = {p.pid for p in pool._processes.values()}  # spawned at prestart
+    with ex.ProcessExecutor(2, tmp_path) as e:
+        recs = e.run(_jobs(2))
+        assert e._pool is pool and 2 not in ex._PRESTARTED
+    assert len(warm) == 2 and {r["result"]["pid"] for r in recs} <= warm
+    ex.prestart("local", 3)
+    procs = list(ex._PRESTARTED[3]._processes.values())
+    ex.prestart("ray", 2)  # nothing for Ray
+    assert set(ex._PRESTARTED) == {3}
+    ex.discard_prestarted()
+    assert not ex._PRESTARTED and procs and all(not p.is_alive() for p in procs)
+
+
 def test_ray_workers_run_single_threaded_and_leave_the_environment(tmp_path, monkeypatch):
     pytest.importorskip("ray")  # the dev extra has it
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)

@@ -53,8 +53,10 @@ __all__ = [
     "ProcessExecutor",
     "RayExecutor",
     "SerialExecutor",
+    "discard_prestarted",
     "make_executor",
     "plain",
+    "prestart",
     "read_journal",
 ]
 
@@ -286,9 +288,8 @@ class ProcessExecutor(Executor):
         self._pool: ProcessPoolExecutor | None = None
 
     def _get_pool(self) -> ProcessPoolExecutor:
-        if self._pool is None:
-            ctx = multiprocessing.get_context("spawn")
-            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx)
+        if self._pool is None:  # the workers :func:`prestart` started, else new ones
+            self._pool = _PRESTARTED.pop(self.workers, None) or _new_pool(self.workers)
         return self._pool
 
     def _imap(self, calls):
@@ -314,6 +315,42 @@ class ProcessExecutor(Executor):
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
         super().close()
+
+
+def _new_pool(workers: int) -> ProcessPoolExecutor:
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+
+
+#: worker pools started ahead of their executor (:func:`prestart`), by worker count
+_PRESTARTED: dict[int, ProcessPoolExecutor] = {}
+
+
+def _warm_up() -> int:
+    """A prestarted worker's first job: import the experiments' common modules (MuJoCo,
+    Open3D, SciPy, ...; ~2 s); returns the worker's process id."""
+    import mmpa.experiments.mmpa_common  # noqa: F401
+
+    return os.getpid()
+
+
+def prestart(kind: str, workers: int) -> None:
+    """Start the local worker processes of ``--executor kind --workers N`` now, each
+    importing the heavy modules, while this process goes on (e.g. importing the experiment):
+    the :class:`ProcessExecutor` made next with ``workers`` takes them over. Nothing for Ray
+    or one worker. :func:`discard_prestarted` stops workers no executor took."""
+    if kind != "local" or workers < 2 or workers in _PRESTARTED:
+        return
+    pool = _new_pool(workers)
+    with _spawn_env(worker_env()):  # the pool spawns its processes in submit()
+        for _ in range(workers):
+            pool.submit(_warm_up)
+    _PRESTARTED[workers] = pool
+
+
+def discard_prestarted() -> None:
+    """Stop the prestarted workers that no executor took over."""
+    while _PRESTARTED:
+        _PRESTARTED.popitem()[1].shutdown(wait=True, cancel_futures=True)
 
 
 class RayExecutor(Executor):
