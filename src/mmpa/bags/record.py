@@ -31,7 +31,10 @@ Topics (REP-105 frames, stamps = sim time; see :mod:`mmpa.bags.messages`):
 ==============================================  ==========================================
 
 ``mmpa demo``, ``mmpa navigate``, ``mmpa run`` and ``mmpa experiment`` record with
-``joint_rate_hz`` = :data:`ARM_RATE_HZ` (a task's path rate when higher).
+``joint_rate_hz`` = :data:`ARM_RATE_HZ` (a task's path rate when higher). A kinematic twin
+(the fiducial search: nothing steps the world) records at every state it is set to
+(:meth:`Recorder.on_kinematic`): the arm, the truth and the tool's photosensor beam on
+``/photosensor`` (``sensor_msgs/Range``).
 
 The arm moves inside the simulator's ``step`` (``SimArm.move_joints`` and ``follow`` run the
 whole motion in one call), which no device wrapper sees. With ``joint_rate_hz`` the recorder
