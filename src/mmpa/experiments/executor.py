@@ -28,6 +28,7 @@ between jobs.
 from __future__ import annotations
 
 import contextlib
+import importlib
 import json
 import multiprocessing
 import os
@@ -325,32 +326,31 @@ def _new_pool(workers: int) -> ProcessPoolExecutor:
 _PRESTARTED: dict[int, ProcessPoolExecutor] = {}
 
 
-def _warm_up() -> int:
-    """A prestarted worker's first job: import the experiments' common modules (MuJoCo,
-    Open3D, SciPy, ...; ~2 s); returns the worker's process id."""
-    import mmpa.experiments.mmpa_common  # noqa: F401
-
+def _warm_up(module: str) -> int:
+    """A prestarted worker's first job: import ``module`` (the experiment's, with what its
+    trials need: MuJoCo, Open3D, ...; ~2 s); returns the worker's process id."""
+    importlib.import_module(module)
     return os.getpid()
 
 
-def prestart(kind: str, workers: int) -> None:
+def prestart(kind: str, workers: int, module: str = "mmpa.experiments.mmpa_common") -> None:
     """Start the local worker processes of ``--executor kind --workers N`` now, each
-    importing the heavy modules, while this process goes on (e.g. importing the experiment):
-    the :class:`ProcessExecutor` made next with ``workers`` takes them over. Nothing for Ray
-    or one worker. :func:`discard_prestarted` stops workers no executor took."""
+    importing ``module``, while this process goes on (e.g. importing the experiment): the
+    :class:`ProcessExecutor` made next with ``workers`` takes them over. Nothing for Ray or
+    one worker. :func:`discard_prestarted` stops workers no executor took."""
     if kind != "local" or workers < 2 or workers in _PRESTARTED:
         return
     pool = _new_pool(workers)
     with _spawn_env(worker_env()):  # the pool spawns its processes in submit()
         for _ in range(workers):
-            pool.submit(_warm_up)
+            pool.submit(_warm_up, module)
     _PRESTARTED[workers] = pool
 
 
 def discard_prestarted() -> None:
-    """Stop the prestarted workers that no executor took over."""
+    """Stop the prestarted workers that no executor took over (without waiting for them)."""
     while _PRESTARTED:
-        _PRESTARTED.popitem()[1].shutdown(wait=True, cancel_futures=True)
+        _PRESTARTED.popitem()[1].shutdown(wait=False, cancel_futures=True)
 
 
 class RayExecutor(Executor):

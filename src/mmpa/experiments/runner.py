@@ -158,7 +158,8 @@ def run_experiment(
 
     # local workers start now and import what the trials need while this process imports
     # the experiment (~1 s of a 30 s two-worker run on two cores)
-    _executor.prestart(executor, workers)
+    if name in EXPERIMENTS:
+        _executor.prestart(executor, workers, EXPERIMENTS[name])
     try:
         return _run_experiment(
             name, out, seed=seed, trials=trials, profile=profile, config=config,
