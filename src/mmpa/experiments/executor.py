@@ -348,9 +348,10 @@ def prestart(kind: str, workers: int, module: str = "mmpa.experiments.mmpa_commo
 
 
 def discard_prestarted() -> None:
-    """Stop the prestarted workers that no executor took over (without waiting for them)."""
+    """Stop the prestarted workers that no executor took over (once their imports are done:
+    a pool shut down without waiting can leave its workers running)."""
     while _PRESTARTED:
-        _PRESTARTED.popitem()[1].shutdown(wait=False, cancel_futures=True)
+        _PRESTARTED.popitem()[1].shutdown(wait=True, cancel_futures=True)
 
 
 class RayExecutor(Executor):
