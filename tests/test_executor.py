@@ -61,14 +61,14 @@ def test_prestarted_workers_are_taken_over_or_stopped(tmp_path):
     """``prestart`` starts the workers (they import the heavy modules) before the executor
     exists; the next ProcessExecutor of that size runs its jobs on them. Workers that no
     executor takes are stopped by ``discard_prestarted``."""
-    ex.prestart("local", 2)
+    ex.prestart("local", 2, "json")  # a light module: the mechanism, not MuJoCo's import
     pool = ex._PRESTARTED[2]
     warm = {p.pid for p in pool._processes.values()}  # spawned at prestart
     with ex.ProcessExecutor(2, tmp_path) as e:
         recs = e.run(_jobs(2))
         assert e._pool is pool and 2 not in ex._PRESTARTED
     assert len(warm) == 2 and {r["result"]["pid"] for r in recs} <= warm
-    ex.prestart("local", 3)
+    ex.prestart("local", 3, "json")
     procs = list(ex._PRESTARTED[3]._processes.values())
     ex.prestart("ray", 2)  # nothing for Ray
     assert set(ex._PRESTARTED) == {3}
