@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -204,13 +203,11 @@ def pass_job(
     with ExitStack() as stack:
         on_state = None
         if record is not None:  # the same pass, observed
-            from mmpa.bags import BagWriter, Recorder
-            from mmpa.experiments.mmpa_common import trial_bag_name
+            from mmpa.experiments.mmpa_common import trial_recorder
 
             label = {"study": study, "strategy": strategy, "speed_cm_s": v_cm}
-            path = Path(record) / trial_bag_name(label, "0", rep)
-            bag = stack.enter_context(BagWriter(path, overwrite=True))
-            on_state = stack.enter_context(Recorder(bag, world)).on_kinematic
+            rec = stack.enter_context(trial_recorder(record, label, "0", rep, world))
+            on_state = rec.on_kinematic
         t0 = time.perf_counter()
         row = _pass(world, cfg, strategy, v_cm, rep, noise, study, on_state)
         row["wall_s"] = time.perf_counter() - t0  # the pass alone (not the world's build)

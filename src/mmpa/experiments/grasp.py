@@ -16,7 +16,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -463,15 +462,10 @@ def recorded(world: Any, folder: str | None, label: dict, trial: int) -> Iterato
     if folder is None:
         yield world
         return
-    from mmpa.bags import BagWriter, Recorder
     from mmpa.bags.record import ARM_RATE_HZ
-    from mmpa.experiments.mmpa_common import trial_bag_name
+    from mmpa.experiments.mmpa_common import trial_recorder
 
-    path = Path(folder) / trial_bag_name(label, "0", trial)
-    with (
-        BagWriter(path, overwrite=True) as bag,
-        Recorder(bag, world, joint_rate_hz=ARM_RATE_HZ) as rec,
-    ):
+    with trial_recorder(folder, label, "0", trial, world, ARM_RATE_HZ) as rec:
         yield rec.world()
 
 

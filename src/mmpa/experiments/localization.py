@@ -23,7 +23,6 @@ calibrated mount; the others (the paper's methods) keep the nominal one.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -203,13 +202,10 @@ def _trial(
         loc = make_localizer(method, grid, lp, np.random.default_rng([cfg.seed, k, 7]))
         robot: Any = world
         if record is not None:  # the same trial, observed (mmpa.bags.Recorder)
-            from mmpa.bags import BagWriter, Recorder
-            from mmpa.experiments.mmpa_common import trial_bag_name
+            from mmpa.experiments.mmpa_common import trial_recorder
 
-            path = Path(record) / trial_bag_name({"method": method}, "0", k)
-            rec = stack.enter_context(
-                Recorder(stack.enter_context(BagWriter(path, overwrite=True)), world)
-            )
+            label = {"method": method}
+            rec = stack.enter_context(trial_recorder(record, label, "0", k, world))
             robot, loc = rec.world(), rec.localizer(loc)
             rec.write_map(grid)
         loc.initialize(guess)

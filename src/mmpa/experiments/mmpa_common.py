@@ -88,6 +88,7 @@ __all__ = [
     "recording_folder",
     "run_trial_groups",
     "trial_bag_name",
+    "trial_recorder",
 ]
 
 #: which demonstration each site uses by default (Site 2' reuses the task taught at Site 2)
@@ -758,6 +759,29 @@ def trial_bag_name(label: dict, site: str, trial: int) -> str:
     letters, digits and ``._'+-`` become ``_``."""
     text = "".join(f"{k}-{v}-" for k, v in label.items()) + f"site-{site}-trial-{int(trial)}"
     return re.sub(r"[^A-Za-z0-9._'+-]", "_", text) + ".mcap"
+
+
+@contextmanager
+def trial_recorder(
+    folder: str | Path,
+    label: dict,
+    site: str,
+    trial: int,
+    world: Any,
+    joint_rate_hz: float | None = None,
+) -> Iterator[Any]:
+    """A :class:`mmpa.bags.Recorder` of ``world`` writing the trial's ROS 2 bag
+    ``folder/<label>site-<site>-trial-<n>.mcap`` (:func:`trial_bag_name`; overwritten), with
+    ``joint_rate_hz`` (None: the arm only with the scans and frames); unhooked and the bag
+    closed after the block (``mmpa experiment --record`` in every twin experiment)."""
+    from mmpa.bags import BagWriter, Recorder
+
+    path = Path(folder) / trial_bag_name(label, site, trial)
+    with (
+        BagWriter(path, overwrite=True) as bag,
+        Recorder(bag, world, joint_rate_hz=joint_rate_hz) as rec,
+    ):
+        yield rec
 
 
 def trial_job(spec_json: str, bundle: str | dict[str, bytes], trial: int) -> dict:

@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -249,14 +248,11 @@ def mm_trial(
     with SimWorld(errors=cfg.errors, site="0", episode=k) as world, ExitStack() as stack:
         rec = None
         if record is not None:  # the same run, observed: `world` is the recording stand-in
-            from mmpa.bags import BagWriter, Recorder
             from mmpa.bags.record import ARM_RATE_HZ
-            from mmpa.experiments.mmpa_common import trial_bag_name
+            from mmpa.experiments.mmpa_common import trial_recorder
 
-            bag = stack.enter_context(
-                BagWriter(Path(record) / trial_bag_name({"object": name}, "0", k), overwrite=True)
-            )
-            rec = stack.enter_context(Recorder(bag, world, joint_rate_hz=ARM_RATE_HZ))
+            label = {"object": name}
+            rec = stack.enter_context(trial_recorder(record, label, "0", k, world, ARM_RATE_HZ))
             world = rec.world()
         nav = CostMap(twin_nav_map(world, cfg.resolution))
         start = corridor_start(nav, rng, cfg)

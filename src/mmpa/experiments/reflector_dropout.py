@@ -30,7 +30,6 @@ default); its seed, the robot instance, follows ``seed`` unless ``errors.seed`` 
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -170,13 +169,10 @@ def _dropout_run(
         }
         sensors: Any = world  # where the localizers' scans and odometry are read
         if record is not None:  # the same run, observed (the harness keeps the world)
-            from mmpa.bags import BagWriter, Recorder
-            from mmpa.experiments.mmpa_common import trial_bag_name
+            from mmpa.experiments.mmpa_common import trial_recorder
 
             m0 = "enhanced" if "enhanced" in locs else cfg.methods[0]
-            path = Path(record) / trial_bag_name({"method": m0}, "0", k)
-            bag = stack.enter_context(BagWriter(path, overwrite=True))
-            rec = stack.enter_context(Recorder(bag, world))
+            rec = stack.enter_context(trial_recorder(record, {"method": m0}, "0", k, world))
             rec.write_map(grid)
             sensors, locs[m0] = rec.world(), rec.localizer(locs[m0])
         # one rough initial pose for every method (the operator's), so that a trial (its
