@@ -261,9 +261,12 @@ def test_cli_runs_and_fails_clearly(toy, tmp_path):
     assert not (tmp_path / "q").exists()
 
 
+@pytest.mark.slow
 def test_ipe_profiles_one_trial(tmp_path):
     """The headline use: IPE against the error profile (one trial at Site 1 per point, about
-    10 s each). Measured: E_t 0.025 mm (ideal) and 0.113 mm (reference), both successes."""
+    10 s each; slow: the toy sweeps test the grid, the tables and the plots, and
+    ``test_cheapest_real_experiment`` a real experiment's figures). Measured: E_t 0.025 mm
+    (ideal) and 0.113 mm (reference), both successes."""
     spec = parse_sweep(
         {
             "experiments": ["ipe"],
