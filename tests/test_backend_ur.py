@@ -84,8 +84,14 @@ def test_protective_stop_aborts_the_stream_and_refuses_motion() -> None:
         arm.move_joints(HOME)
 
 
-def test_command_stream_is_velocity_limited() -> None:
+@pytest.mark.parametrize("limited", [True, False])
+def test_command_stream_is_velocity_and_acceleration_limited(limited: bool) -> None:
+    """Issue 22: the servoJ set-points keep qd_max and qdd_max (the default), or the hard
+    stream limit qdd_stream_max (40 rad/s^2, ur_rtde's) when the stream is not held to
+    qdd_max: never an unbounded acceleration (before: velocity-limited only)."""
     arm, fake = _arm()
+    assert arm.stream_acceleration_limited
+    arm.stream_acceleration_limited = limited
     target = HOME + np.array([1.0, 0, 0, 0, 0, 0])
     arm.command(target)
     deadline = time.monotonic() + 20
@@ -94,8 +100,13 @@ def test_command_stream_is_velocity_limited() -> None:
     arm.stop_stream()
     ts, qs = fake.servo_targets()
     v = np.abs(path_velocities(ts, qs))
+    a = np.abs(path_accelerations(ts, qs))
     assert v.max() <= LIM.qd_max[0] * (1 + 1e-9)
-    assert qs[-1][0] == pytest.approx(HOME[0] + 1.0)  # 1 rad at pi rad/s: there by 0.32 s
+    a_lim = LIM.qdd_max[0] if limited else LIM.qdd_stream_max[0]
+    assert a.max() == pytest.approx(a_lim, rel=1e-6)  # it accelerates at the limit, no more
+    # 1 rad: pi rad/s reached in 0.79 s at 4 rad/s^2 (triangle: 0.5 s each way, there by
+    # 1.0 s), or in 0.08 s at 40 rad/s^2 (there by 0.4 s)
+    assert qs[-1][0] == pytest.approx(HOME[0] + 1.0, abs=1e-3 if limited else 1e-12)
     assert fake.calls[-1][1] == "servoStop"
 
 

@@ -120,6 +120,25 @@ def test_streaming_limiter_respects_limits_and_lands() -> None:
     assert abs(n * dt - t_trap) < 5 * dt
 
 
+def test_stream_limits_raise_qdd_max_to_the_hard_limit_never_to_infinity() -> None:
+    """Issue 22: a stream not held to qdd_max is held to the arm's qdd_stream_max (ur_rtde's
+    40 rad/s^2 by default), a description cannot set it below qdd_max or to NaN, and limits
+    without a stream limit stay as they are."""
+    assert LIM.stream(True) is LIM
+    free = LIM.stream(False)
+    np.testing.assert_array_equal(free.qdd_max, np.full(6, 40.0))
+    np.testing.assert_array_equal(free.qd_max, LIM.qd_max)
+    np.testing.assert_array_equal(free.q_min, LIM.q_min)
+    bare = JointLimits(LIM.q_min, LIM.q_max, LIM.qd_max, LIM.qdd_max)
+    assert bare.stream(False) is bare
+    with pytest.raises(ValueError, match=r"qdd_stream_max .* at least arm\.qdd_max"):
+        ArmDescription(qdd_stream_max=(3.0,) * 6)
+    with pytest.raises(ValueError, match="qdd_stream_max must be finite"):
+        ArmDescription(qdd_stream_max=(float("nan"),) * 6)
+    with pytest.raises(ValueError, match="qdd_max must be finite"):
+        ArmDescription(qdd_max=(0.0,) * 6)
+
+
 def test_limit_acceleration_keeps_the_limits_and_the_direction() -> None:
     """Closed form: a wanted velocity within reach is taken at once; one beyond it is
     approached along ``v_des - v`` by exactly ``qdd_max dt`` on the binding joint; a stream
@@ -241,18 +260,34 @@ def test_command_stream_is_rate_limited(world, accel: bool) -> None:
     # issue 22: the stream keeps the acceleration limits by default
     np.testing.assert_array_equal(saved.qdd_max, LIM.qdd_max)
     np.testing.assert_array_equal(saved.qd_max, LIM.qd_max)
-    if not accel:
-        arm.stream_limits = JointLimits(LIM.q_min, LIM.q_max, LIM.qd_max, np.full(6, np.inf))
+    assert arm.stream_acceleration_limited
+    # the applied set-points (d.ctrl of the arm's actuators), every physics step
+    ctrl, dt = [], world.model.opt.timestep
+    real_step = world.step
+
+    def step(seconds: float) -> None:
+        for _ in range(round(seconds / dt)):
+            real_step(dt)
+            ctrl.append(world.data.ctrl[world._arm_act].copy())
+
+    world.step = step
+    arm.stream_acceleration_limited = accel
     try:
         arm.command(target)  # a 1.5 rad jump as one servo set-point
         peak = _peak_speed(world, 2.0)
     finally:
-        arm.stream_limits = saved
+        arm.stream_acceleration_limited = True
+        del world.step
+    assert arm.stream_limits == saved
     assert np.all(peak <= LIM.qd_max * 1.05), peak / LIM.qd_max
+    a = np.abs(np.diff(np.array(ctrl), n=2, axis=0)).max(axis=0) / dt**2
     if accel:  # a triangular profile (1.5 rad < qd_max^2 / qdd_max): peak sqrt(qdd_max d)
         assert peak[0] == pytest.approx(np.sqrt(LIM.qdd_max[0] * 1.5), rel=0.05)
-    else:  # cruising at the velocity limit, not crawling
+        assert a[0] == pytest.approx(LIM.qdd_max[0], rel=1e-6)
+    else:  # cruising at the velocity limit, not crawling, reached at the hard stream limit
         assert peak[0] > 0.95 * LIM.qd_max[0]
+        assert a[0] == pytest.approx(40.0, rel=1e-6)  # UR_JOINT_ACCELERATION_MAX of ur_rtde
+        assert np.all(a <= LIM.qdd_stream_max * (1 + 1e-6))
     np.testing.assert_allclose(arm.joint_positions(), target, atol=2e-3)
 
 
@@ -285,7 +320,8 @@ def test_command_stream_follows_an_accelerating_stream_within_limits(world) -> N
     qdd_max, within the limits): the applied set-point (``d.ctrl``) stays within 3 mrad of
     the stream's closed form all the way (the hold braked the last physics step of every
     period: it then reached only 0.6 qdd_max and lagged 66 mrad after 0.4 s). Switching
-    ``stream_acceleration_limited`` off lifts the qdd_max limit only, on restores it."""
+    ``stream_acceleration_limited`` off raises qdd_max to the hard ``qdd_stream_max`` only,
+    on restores it."""
     arm = world.arm
     arm.move_joints(HOME)
     d = world.data
@@ -303,7 +339,7 @@ def test_command_stream_follows_an_accelerating_stream_within_limits(world) -> N
     assert arm.stream_acceleration_limited
     arm.stream_acceleration_limited = False
     try:
-        assert np.all(np.isinf(arm.stream_limits.qdd_max))
+        np.testing.assert_array_equal(arm.stream_limits.qdd_max, LIM.qdd_stream_max)
         np.testing.assert_array_equal(arm.stream_limits.qd_max, LIM.qd_max)
     finally:
         arm.stream_acceleration_limited = True

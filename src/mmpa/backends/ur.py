@@ -11,7 +11,9 @@
   streams the path with ``servoJ`` at the controller's rate (``frequency``: 500 Hz on
   e-Series), timed by the controller's own ``initPeriod`` / ``waitPeriod``;
 - ``command`` sets a streaming target that a background thread at the controller's rate
-  follows through the same velocity limiter as the twin (:func:`limit_setpoint`);
+  follows through the same velocity and acceleration limiter as the twin
+  (:func:`limit_setpoint`; ``qdd_max``, or the hard ``qdd_stream_max`` with
+  ``stream_acceleration_limited`` off);
 - a protective or emergency stop (read from RTDE receive) aborts a stream and refuses every
   motion with :class:`~mmpa.errors.MMPAError` until it is cleared on the pendant.
 
@@ -83,6 +85,18 @@ class URArm:
         self._stream: threading.Thread | None = None
         self._stop = threading.Event()
         self.stream_error: Exception | None = None
+        #: the limits of the streamed set-points (``command``; see the twin's ``SimArm``)
+        self.stream_limits = limits
+
+    @property
+    def stream_acceleration_limited(self) -> bool:
+        """True (the default): ``command``'s set-points keep ``qdd_max``; False: the hard
+        stream limit ``qdd_stream_max`` (:meth:`JointLimits.stream`)."""
+        return bool(np.array_equal(self.stream_limits.qdd_max, self.limits.qdd_max))
+
+    @stream_acceleration_limited.setter
+    def stream_acceleration_limited(self, on: bool) -> None:
+        self.stream_limits = self.limits.stream(on)
 
     # ------------------------------------------------------------------ state
     def joint_positions(self) -> Array:
@@ -195,7 +209,8 @@ class URArm:
     # ------------------------------------------------------------------ streaming
     def command(self, q: Array) -> None:
         """Streaming target (as ``servoJ`` from a slower loop): a background thread at the
-        controller's rate moves the set-point toward ``q`` within the velocity limits."""
+        controller's rate moves the set-point toward ``q`` within ``stream_limits``
+        (velocity and acceleration)."""
         q = np.asarray(q, dtype=float)
         if q.shape != (6,):
             raise InvalidInputError(f"joint target must be 6 angles, got shape {q.shape}")
@@ -212,9 +227,6 @@ class URArm:
 
     def _run_stream(self) -> None:
         c = self._control
-        vel_only = JointLimits(
-            self.limits.q_min, self.limits.q_max, self.limits.qd_max, np.full(6, np.inf)
-        )
         q = self.joint_positions()
         v = np.zeros(6)
         try:
@@ -224,7 +236,7 @@ class URArm:
                 with self._lock:
                     target = self._target
                 if target is not None:
-                    q, v = limit_setpoint(q, v, target, self._dt, vel_only)
+                    q, v = limit_setpoint(q, v, target, self._dt, self.stream_limits)
                     c.servoJ(
                         q.tolist(), 0.0, 0.0, self._dt, self.cfg.servo_lookahead,
                         self.cfg.servo_gain,

@@ -64,6 +64,13 @@ class ArmDescription(_Frozen):
     q_max: tuple[float, ...] = (2 * _PI, 2 * _PI, _PI, 2 * _PI, 2 * _PI, 2 * _PI)
     qd_max: tuple[float, ...] = (_PI, _PI, _PI, _PI, _PI, _PI)  # 180 deg/s
     qdd_max: tuple[float, ...] = (4.0, 4.0, 4.0, 6.0, 6.0, 6.0)  # rad/s^2, conservative
+    # rad/s^2: the hard acceleration limit of a servo stream (``Arm.command``), which every
+    # backend enforces on its set-points even when the stream is not held to ``qdd_max``
+    # (the tracking grasp of a moving object). A UR has no joint acceleration limit of its
+    # own, only torques: ``qdd_max`` are planning values, like the 5 rad/s^2 of UR's
+    # ur_moveit_config joint_limits.yaml; ur_rtde refuses joint accelerations above
+    # 40 rad/s^2 (``UR_JOINT_ACCELERATION_MAX``), the value here
+    qdd_stream_max: tuple[float, ...] = (40.0, 40.0, 40.0, 40.0, 40.0, 40.0)
     qddd_max: tuple[float, ...] = (40.0, 40.0, 40.0, 60.0, 60.0, 60.0)  # rad/s^3, for ruckig
     reach: float = 0.85  # m, from the shoulder axis
     link_masses: tuple[float, ...] = (3.761, 8.058, 2.846, 1.37, 1.3, 0.365)  # kg
@@ -79,6 +86,7 @@ class ArmDescription(_Frozen):
             "q_max",
             "qd_max",
             "qdd_max",
+            "qdd_stream_max",
             "qddd_max",
             "home",
             "view_bench",
@@ -88,6 +96,14 @@ class ArmDescription(_Frozen):
                 raise ValueError(f"arm.{name} needs 6 values")
         if any(lo >= hi for lo, hi in zip(self.q_min, self.q_max, strict=True)):
             raise ValueError("arm.q_min must be below arm.q_max for every joint")
+        for name in ("qd_max", "qdd_max", "qdd_stream_max", "qddd_max"):
+            if not all(np.isfinite(v) and v > 0 for v in getattr(self, name)):
+                raise ValueError(f"arm.{name} must be finite and positive for every joint")
+        if any(s < a for s, a in zip(self.qdd_stream_max, self.qdd_max, strict=True)):
+            raise ValueError(
+                "arm.qdd_stream_max (the servo stream's hard acceleration limit) must be at "
+                "least arm.qdd_max for every joint"
+            )
         return self
 
     @property

@@ -223,7 +223,10 @@ class Arm(Protocol):
     :class:`~mmpa.errors.InvalidInputError` before anything moves (callers slow a path down
     with :func:`mmpa.planning.retime`); a path whose start is away from the arm gets a
     limit-respecting approach move, never a jump; streaming set-points (``command``, where a
-    backend has it) are velocity- and acceleration-limited by the backend.
+    backend has it) are velocity- and acceleration-limited by the backend: within ``qdd_max``
+    by default, and never beyond the arm's hard stream limit ``qdd_stream_max`` (a backend
+    with a ``stream_acceleration_limited`` switch lets a servo loop trade the one for the
+    other, :meth:`mmpa.robot.limits.JointLimits.stream`).
     """
 
     def joint_positions(self) -> Array:

@@ -8,11 +8,14 @@ finite difference ``a_k = (v_k - v_{k-1}) / ((t_{k+1} - t_{k-1}) / 2)`` (exact f
 sampled from a constant-acceleration motion). A streaming set-point (``Arm.command``) is
 shaped by :func:`limit_setpoint`, a per-joint second-order limiter: the set-point moves
 toward its target no faster than ``qd_max`` and changes speed no faster than ``qdd_max``,
-braking early enough to stop at the target.
+braking early enough to stop at the target. A stream not held to ``qdd_max`` (a tracking
+grasp of a moving object) is still held to the arm's hard stream limit ``qdd_stream_max``
+(:meth:`JointLimits.stream`): no backend streams an unbounded acceleration.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,18 +40,35 @@ __all__ = [
 class JointLimits:
     """Limits of a 6-joint arm, each shape (6,): ``q_min``/``q_max`` rad, ``qd_max`` rad/s,
     ``qdd_max`` rad/s^2. ``tolerance`` is the relative slack allowed on velocity and
-    acceleration (rounding of time stamps)."""
+    acceleration (rounding of time stamps). ``qdd_stream_max`` (rad/s^2, >= ``qdd_max``;
+    None: ``qdd_max``): the hard acceleration limit of a servo stream that is not held to
+    ``qdd_max`` (:meth:`stream`)."""
 
     q_min: Array
     q_max: Array
     qd_max: Array
     qdd_max: Array
     tolerance: float = 1e-6
+    qdd_stream_max: Array | None = None
 
     @classmethod
     def from_description(cls, arm: ArmDescription) -> JointLimits:
         lo, hi = arm.q_limits
-        return cls(lo, hi, np.asarray(arm.qd_max, float), np.asarray(arm.qdd_max, float))
+        return cls(
+            lo,
+            hi,
+            np.asarray(arm.qd_max, float),
+            np.asarray(arm.qdd_max, float),
+            qdd_stream_max=np.asarray(arm.qdd_stream_max, float),
+        )
+
+    def stream(self, acceleration_limited: bool = True) -> JointLimits:
+        """The limits of a servo stream's set-points: these limits (``acceleration_limited``)
+        or, for a stream not held to ``qdd_max``, the same with ``qdd_max`` raised to the
+        hard ``qdd_stream_max`` (never unbounded: without one, these limits)."""
+        if acceleration_limited or self.qdd_stream_max is None:
+            return self
+        return dataclasses.replace(self, qdd_max=np.asarray(self.qdd_stream_max, float))
 
 
 def check_positions(q: Array, limits: JointLimits, what: str = "joint target") -> Array:

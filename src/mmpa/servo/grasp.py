@@ -205,14 +205,14 @@ class GraspConfig(BaseModel):
     # ``joint_accel_fraction`` of it, streamed at ``servo_rate_hz``, the descent along a
     # ``descend_accel`` ramp, and the arm's streaming interface told to enforce qdd_max: an
     # arm with a ``stream_acceleration_limited`` switch, ``mmpa.sim.world.SimArm``); else
-    # qd_max only, one set-point per control tick, a constant-speed descent (the
-    # acceleration bounded by the joint torques, as on a UR, whose servoj takes such a
-    # stream; the paper's way). "always": limited; "never": never; "still": limited except
-    # while the object moves (its least-squares line over ``still_window`` faster than
-    # ``final_standoff_max_speed``) and in the descent onto a moving object. Under qdd_max
-    # (4 rad/s^2 on joints 1-3) a descent takes 0.9-1.5 s instead of 0.2-0.4 s and a moving
-    # object turns meanwhile (measured, seed 0, 6 trials, grasped / close error mean mm:
-    # see the issue-22 note in the module docstring)
+    # qd_max and the arm's hard stream limit ``qdd_stream_max`` only (40 rad/s^2, ur_rtde's
+    # limit: a UR's own acceleration limits are planning values), one set-point per control
+    # tick, a constant-speed descent (the paper's way). "always": limited; "never": never;
+    # "still": limited except while the object moves (its least-squares line over
+    # ``still_window`` faster than ``final_standoff_max_speed``) and in the descent onto a
+    # moving object. Under qdd_max (4 rad/s^2 on joints 1-3) a descent takes 0.9-1.5 s
+    # instead of 0.2-0.4 s and a moving object turns meanwhile (measured, seed 0, 6
+    # trials, grasped / close error mean mm: see the issue-22 note in the module docstring)
     # "intercept": limited throughout (the arm's interface enforces qdd_max all the time);
     # static objects as "always"; a moving object is tracked and descended onto by the
     # jerk-limited online intercept (:mod:`mmpa.servo.intercept`): every set-point is the
@@ -487,7 +487,9 @@ class TrackingGrasp:
         qd = np.asarray(rb.arm.qd_max, float)
         qdd = np.asarray(rb.arm.qdd_max, float) * self.cfg.joint_accel_fraction
         self._lim_acc = JointLimits(self._q_lo, self._q_hi, qd, qdd)
-        self._lim_vel = JointLimits(self._q_lo, self._q_hi, qd, np.full(6, np.inf))
+        # not ``limited``: qd_max and the arm's hard stream limit (issue 22: never unbounded)
+        qdd_hard = np.asarray(rb.arm.qdd_stream_max, float)
+        self._lim_vel = JointLimits(self._q_lo, self._q_hi, qd, qdd_hard)
         #: limits of the intercept plans ("intercept"): the stream's, and the jerk limit
         jerk = np.asarray(rb.arm.qddd_max, float) * self.cfg.intercept_jerk_scale
         qdd_i = np.asarray(rb.arm.qdd_max, float) * self.cfg.intercept_accel_fraction
@@ -768,12 +770,14 @@ class TrackingGrasp:
     @property
     def stream_limits(self) -> JointLimits:
         """Limits of the streamed set-points now: the arm's qd_max, and
-        ``joint_accel_fraction`` of its qdd_max while ``limited`` (issue 22)."""
+        ``joint_accel_fraction`` of its qdd_max while ``limited``, else its hard stream
+        limit ``qdd_stream_max`` (issue 22)."""
         return self._lim_acc if self.limited else self._lim_vel
 
     def _set_limited(self, arm: Any, on: bool) -> None:
-        """Stream within qdd_max (``on``) or qd_max only from now on, the arm's streaming
-        interface told the same (when it has a ``stream_acceleration_limited`` switch)."""
+        """Stream within qdd_max (``on``) or qd_max and the hard ``qdd_stream_max`` from now
+        on, the arm's streaming interface told the same (when it has a
+        ``stream_acceleration_limited`` switch)."""
         self.limited = bool(on)
         if hasattr(arm, "stream_acceleration_limited"):
             arm.stream_acceleration_limited = self.limited
@@ -1148,7 +1152,7 @@ class TrackingGrasp:
             except UnreachableError:
                 res.reason = "unreachable"
                 break
-            if cfg.stream_accel_limit == "still":  # qd_max only while the object moves
+            if cfg.stream_accel_limit == "still":  # qdd_stream_max while the object moves
                 self._set_limited(arm, not self._fast(hist))
             if cfg.intercept_track and self._intercepting(kf, line):  # intercept the pose
                 # the goal now (the segment moves it on): the prediction at this tick

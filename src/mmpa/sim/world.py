@@ -12,7 +12,6 @@ Units: m, rad, s. Every random draw comes from the error model's seeded streams.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar
@@ -580,7 +579,8 @@ class SimArm:
     velocity or acceleration limits before anything moves, and first approaches the path's
     start along a jerk-limited move when the arm is more than ``approach_tolerance`` rad away;
     ``command`` streams through a set-point limited in velocity and acceleration
-    (``stream_limits``; in velocity only with ``stream_acceleration_limited`` off).
+    (``stream_limits``: ``qdd_max``, or the hard ``qdd_stream_max`` with
+    ``stream_acceleration_limited`` off).
     """
 
     #: rad: a path starting farther than this from the set-point gets an approach move first
@@ -597,24 +597,23 @@ class SimArm:
         self.limits = JointLimits.from_description(a)
         #: the limits of streamed set-points (``command``): the joint velocity and
         #: acceleration limits (issue 22: a real controller's servo stream refuses, or
-        #: protective-stops on, a stream past them), or the velocity limits only
-        #: (``stream_acceleration_limited`` False: the acceleration bounded by the joint
-        #: torques, the actuators' force ranges, as on a UR, whose acceleration limits are
-        #: planning values, MoveIt's joint_limits.yaml, not servo limits)
+        #: protective-stops on, a stream past them), or with ``stream_acceleration_limited``
+        #: False the hard stream limit ``qdd_stream_max`` instead of ``qdd_max`` (as on a
+        #: UR, whose acceleration limits are planning values, MoveIt's joint_limits.yaml;
+        #: the actuators' force ranges bound the acceleration further)
         self.stream_limits = self.limits
 
     @property
     def stream_acceleration_limited(self) -> bool:
-        """True (the default): ``command`` keeps the set-points within ``qdd_max`` too
-        (``stream_limits`` = ``limits``); False: within ``qd_max`` only. The tracking grasp
-        sets it from its config (``GraspConfig.stream_accel_limit``)."""
-        return bool(np.all(np.isfinite(self.stream_limits.qdd_max)))
+        """True (the default): ``command`` keeps the set-points within ``qdd_max``
+        (``stream_limits`` = ``limits``); False: within the hard stream limit
+        ``qdd_stream_max`` (:meth:`JointLimits.stream`). The tracking grasp sets it from its
+        config (``GraspConfig.stream_accel_limit``)."""
+        return bool(np.array_equal(self.stream_limits.qdd_max, self.limits.qdd_max))
 
     @stream_acceleration_limited.setter
     def stream_acceleration_limited(self, on: bool) -> None:
-        self.stream_limits = (
-            self.limits if on else dataclasses.replace(self.limits, qdd_max=np.full(6, np.inf))
-        )
+        self.stream_limits = self.limits.stream(on)
 
     def joint_positions(self) -> Array:
         """Encoder readings (rad), shape (6,)."""
