@@ -2,11 +2,13 @@
 ``--workers 1`` and ``--workers W`` (run on purpose: ``python benchmarks/bench_workers.py
 [--trials 4] [--workers 2] [--executor local|ray]``).
 
-Each run is a separate ``mmpa`` process (start-up, teaching and the trials all counted), on
-the same configuration; the script prints both wall times, the speedup (target >= 1.6x with
-two workers on two free cores), the peak memory per worker from the rows, and whether the
-two ``results.csv`` agree but for the time and memory columns (they must). The machine's
-load average is printed with the figures: other work on the cores lowers the speedup.
+Each run is a separate ``mmpa`` process (start-up, teaching and the trials all counted; with
+``--executor ray``, starting and stopping its local Ray too, unless ``--ray-address`` names a
+running cluster), on the same configuration; the script prints both wall times, the speedup
+(target >= 1.6x with two workers on two free cores), the peak memory per worker from the
+rows, and whether the two ``results.csv`` agree but for the time and memory columns (they
+must). The machine's load average is printed with the figures: other work on the cores
+lowers the speedup.
 Always exits 0 unless the rows differ.
 """
 
@@ -59,15 +61,24 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--executor", default="local", choices=["local", "ray"])
     ap.add_argument("--set", action="append", default=[], help="an override, as mmpa --set")
+    ap.add_argument(
+        "--ray-address",
+        help="a running Ray cluster (e.g. `ray start --head --num-cpus 2` here): the run "
+        "connects to it instead of starting and stopping a local Ray of its own",
+    )
     a = ap.parse_args()
     extra = [x for s in a.set for x in ("--set", s)]
+    if a.ray_address:
+        if a.executor != "ray":
+            ap.error("--ray-address needs --executor ray")
     print(f"cores: {os.cpu_count()}, load average before: {os.getloadavg()}")
     with tempfile.TemporaryDirectory() as d:
         one = Path(d) / "w1"
         many = Path(d) / f"w{a.workers}"
         t1, c1 = run(a.trials, 1, "local", one, extra)
         print(f"--workers 1: {t1:.1f} s wall, {c1:.1f} s CPU (load {os.getloadavg()[0]:.2f})")
-        tn, cn = run(a.trials, a.workers, a.executor, many, extra)
+        at = ["--ray-address", a.ray_address] if a.ray_address else []
+        tn, cn = run(a.trials, a.workers, a.executor, many, [*extra, *at])
         print(
             f"--workers {a.workers} --executor {a.executor}: {tn:.1f} s wall, {cn:.1f} s CPU "
             f"(load {os.getloadavg()[0]:.2f})"
