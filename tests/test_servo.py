@@ -289,8 +289,10 @@ def test_stream_reaches_a_joint_velocity_at_the_acceleration_limit_between_ticks
     at ``servo_rate_hz`` (100 Hz) as a ramp at ``joint_accel_fraction`` of qdd_max of the
     joint that needs the longest (the others scaled: the direction kept), reached after
     ``max_j |qdot_j| / (a_j h)`` set-points (closed form), the set-point the tick returned
-    being the one streamed at the tick's end. "never": one set-point per tick, ``q + qdot
-    dt`` (the velocity at once); the arm's limiter is switched to match each time."""
+    being the one streamed at the tick's end. "never": the same at the arm's hard stream
+    limit ``qdd_stream_max`` (40 rad/s^2: 2 set-points; before issue 22's hard limit, one
+    set-point per tick, the velocity at once); the arm's limiter is switched to match each
+    time."""
     from mmpa.servo.grasp import GraspConfig, TrackingGrasp
 
     rb = default_robot()
@@ -317,14 +319,14 @@ def test_stream_reaches_a_joint_velocity_at_the_acceleration_limit_between_ticks
             np.testing.assert_allclose(arm.sent[-1][1], q_end, atol=1e-12)
         t = np.array([s[0] for s in arm.sent])
         q = np.array([q0] + [s[1] for s in arm.sent])
-        if mode == "never":
-            assert len(arm.sent) == 6
-            np.testing.assert_allclose(np.diff(q, axis=0), np.tile(qdot * 0.05, (6, 1)))
-            continue
         h = 1.0 / cfg.servo_rate_hz
         np.testing.assert_allclose(np.diff(t), h)
+        assert len(arm.sent) == 30
         v = np.diff(q, axis=0) / h
-        a_lim = np.asarray(rb.arm.qdd_max) * cfg.joint_accel_fraction
+        if mode == "never":
+            a_lim = np.asarray(rb.arm.qdd_stream_max)
+        else:
+            a_lim = np.asarray(rb.arm.qdd_max) * cfg.joint_accel_fraction
         assert np.all(np.abs(np.diff(v, axis=0)) / h <= a_lim * (1 + 1e-9))
         n = int(np.ceil(np.max(np.abs(qdot) / (a_lim * h)) - 1e-9))
         np.testing.assert_allclose(v[n - 1 :], np.tile(qdot, (len(v) - n + 1, 1)), atol=1e-12)
