@@ -10,6 +10,7 @@ expanded, and any text longer than ``max_bytes``.
 from __future__ import annotations
 
 import math
+import sys
 from numbers import Real
 from pathlib import Path
 from typing import Any
@@ -50,6 +51,11 @@ def load_yaml_text(text: str, what: str = "YAML text", max_bytes: int = MAX_YAML
         return yaml.load(text, Loader=_NoAliasLoader)  # a SafeLoader subclass
     except yaml.YAMLError as e:
         raise ConfigError(f"{what}: not valid YAML: {e}") from e
+    except RecursionError:  # PyYAML's parser recurses once per nesting level
+        raise ConfigError(
+            f"{what}: YAML nested too deeply (more than Python's recursion limit of "
+            f"{sys.getrecursionlimit()} levels)"
+        ) from None
 
 
 def load_yaml(path: str | Path, max_bytes: int = MAX_YAML_BYTES, what: str = "") -> Any:

@@ -23,7 +23,7 @@ from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from mmpa.config import save_config
 from mmpa.errors import MMPAError
@@ -47,7 +47,8 @@ class DemoConfig(BaseModel):
     """Configuration of ``mmpa demo`` and ``mmpa sim snapshot``."""
 
     # site names look like numbers ("2"): --set goal_site=2 must stay a string
-    model_config = ConfigDict(extra="forbid", coerce_numbers_to_str=True)
+    # NaN / inf refused (timeout=inf would drive forever)
+    model_config = ConfigDict(extra="forbid", coerce_numbers_to_str=True, allow_inf_nan=False)
 
     scene: str | None = None  # path of a scene YAML; None: the built-in world
     start_site: str = "0"
@@ -63,6 +64,15 @@ class DemoConfig(BaseModel):
     # parking there, IPE + the adapted tool path run and are scored against the truth
     mmpa_task: str | None = "needle_site1"
     errors: ErrorModelConfig = ErrorModelConfig()
+
+    @field_validator("localization")
+    @classmethod
+    def _known_method(cls, v: str) -> str:
+        from mmpa.localization.localizer import METHODS
+
+        if v != "truth" and v not in METHODS:
+            raise ValueError(f"unknown localization {v!r}; valid: truth, {', '.join(METHODS)}")
+        return v
 
 
 def _capture(world: SimWorld, out: Path, cfg: DemoConfig, q_view: Array) -> dict:

@@ -43,8 +43,10 @@ __all__ = [
     "AMCL",
     "AMCLConfig",
     "PoseEstimate",
+    "check_scan",
     "cluster_labels",
     "compose_odom",
+    "finite_cov",
     "finite_pose",
     "odometry_delta",
     "sample_motion",
@@ -105,12 +107,44 @@ class PoseEstimate:
 def finite_pose(pose: Array, what: str) -> Array:
     """``pose`` as a (3,) float array ``[x, y, theta]``; raises :class:`InvalidInputError`
     naming ``what`` (e.g. "odometry pose") if it has another size or holds NaN/inf."""
-    p = np.asarray(pose, float).reshape(-1)
+    try:
+        p = np.asarray(pose, float).reshape(-1)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{what} must be 3 numbers [x, y, theta], got {pose!r}") from None
     if p.shape != (3,):
         raise InvalidInputError(f"{what} must be [x, y, theta], got shape {np.shape(pose)}")
     if not np.all(np.isfinite(p)):
         raise InvalidInputError(f"{what} must be finite, got {p}")
     return p
+
+
+def check_scan(scan: object) -> LaserScan:
+    """``scan`` if it is a :class:`~mmpa.robot.interfaces.LaserScan`, else
+    :class:`InvalidInputError` (None or an array would fail deep inside a localizer)."""
+    if not isinstance(scan, LaserScan):
+        raise InvalidInputError(f"scan must be a LaserScan, got {type(scan).__name__}")
+    return scan
+
+
+def finite_cov(cov: Array, what: str) -> Array:
+    """``cov`` as a (3, 3) symmetric positive semi-definite float array of ``[x, y, theta]``;
+    raises :class:`InvalidInputError` naming ``what`` otherwise (NaN, wrong shape, negative)."""
+    try:
+        c = np.asarray(cov, float)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{what} must be a 3 x 3 matrix of numbers, got {cov!r}") from None
+    if c.shape != (3, 3):
+        raise InvalidInputError(f"{what} must be 3 x 3 (x, y, theta), got shape {c.shape}")
+    if not np.all(np.isfinite(c)):
+        raise InvalidInputError(f"{what} must be finite, got {c.tolist()}")
+    if not np.allclose(c, c.T, rtol=1e-9, atol=1e-12):
+        raise InvalidInputError(f"{what} must be symmetric, got {c.tolist()}")
+    low = float(np.linalg.eigvalsh(c).min())
+    if low < -1e-12 * max(1.0, float(np.abs(c).max())):
+        raise InvalidInputError(
+            f"{what} must be positive semi-definite, its smallest eigenvalue is {low:.3g}"
+        )
+    return c
 
 
 def odometry_delta(prev: Array, cur: Array) -> tuple[float, float, float]:
@@ -208,10 +242,12 @@ class AMCL:
         pose = finite_pose(pose, "initial pose")
         c = self.cfg
         cov = (
-            np.diag([c.initial_cov_xx, c.initial_cov_yy, c.initial_cov_aa]) if cov is None else cov
+            np.diag([c.initial_cov_xx, c.initial_cov_yy, c.initial_cov_aa])
+            if cov is None
+            else finite_cov(cov, "initial covariance")
         )
         n = c.max_particles
-        self.particles = self.rng.multivariate_normal(pose, np.asarray(cov, float), n)
+        self.particles = self.rng.multivariate_normal(pose, cov, n)
         self.particles[:, 2] = _wrap(self.particles[:, 2])
         self.weights = np.full(n, 1.0 / n)
         self._reset_bookkeeping()
@@ -506,6 +542,7 @@ class AMCL:
         if self.particles.shape[0] == 0:
             raise InvalidInputError("set an initial pose or call global_localization() first")
         odom_pose = finite_pose(odom_pose, "odometry pose")
+        check_scan(scan)
         if not (force or self._should_update(odom_pose)):
             return self._current(updated=False)
         self.predict(odom_pose)
@@ -604,11 +641,12 @@ class AMCL:
     def pose_at(self, odom_pose: Array) -> Array:
         """The estimate carried forward by the odometry since the last filter update (what
         Nav2 publishes through the ``map -> odom`` transform)."""
+        odom_pose = finite_pose(odom_pose, "odometry pose")
         est = self.estimate().pose
         ref = self._odom_prev
         if ref is None:
             return est.copy()
-        return compose_odom(est, ref, np.asarray(odom_pose, float))
+        return compose_odom(est, ref, odom_pose)
 
     def _current(self, updated: bool) -> PoseEstimate:
         if self._estimate is None:

@@ -115,7 +115,14 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.errors import InvalidInputError
 from mmpa.geometry import Array
-from mmpa.localization.amcl import AMCL, AMCLConfig, PoseEstimate, _wrap, finite_pose
+from mmpa.localization.amcl import (
+    AMCL,
+    AMCLConfig,
+    PoseEstimate,
+    _wrap,
+    check_scan,
+    finite_pose,
+)
 from mmpa.localization.maps import OccupancyGrid
 from mmpa.localization.reflectors import (
     DetectionConfig,
@@ -1000,6 +1007,7 @@ class EnhancedAMCL(AMCL):
         if self.particles.shape[0] == 0:
             raise InvalidInputError("set an initial pose or call global_localization() first")
         odom_pose = finite_pose(odom_pose, "odometry pose")
+        check_scan(scan)
         if self.plain_amcl:  # fallback_to_amcl on a map with < 3 reflectors
             self.last_fix = None
             est = super().update(odom_pose, scan, force)

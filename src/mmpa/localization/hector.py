@@ -29,7 +29,14 @@ from scipy import ndimage
 
 from mmpa.errors import InvalidInputError
 from mmpa.geometry import Array
-from mmpa.localization.amcl import PoseEstimate, _wrap, compose_odom, finite_pose
+from mmpa.localization.amcl import (
+    PoseEstimate,
+    _wrap,
+    check_scan,
+    compose_odom,
+    finite_cov,
+    finite_pose,
+)
 from mmpa.localization.maps import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan
 
@@ -108,14 +115,17 @@ class HectorMatcher:
 
     def initialize(self, pose: Array, cov: Array | None = None) -> None:
         self._pose = finite_pose(pose, "initial pose").copy()
+        if cov is not None:  # unused (a scan match sets it), but checked like AMCL's
+            finite_cov(cov, "initial covariance")
         self._odom = None
 
     def pose_at(self, odom_pose: Array) -> Array:
+        odom_pose = finite_pose(odom_pose, "odometry pose")
         if self._pose is None:
             raise InvalidInputError("initialize the matcher with a pose first")
         if self._odom is None:
             return self._pose.copy()
-        return compose_odom(self._pose, self._odom, np.asarray(odom_pose, float))
+        return compose_odom(self._pose, self._odom, odom_pose)
 
     def _endpoints_base(self, scan: LaserScan) -> Array:
         m = scan.valid()
@@ -159,7 +169,7 @@ class HectorMatcher:
     def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
         odom_pose = finite_pose(odom_pose, "odometry pose")
         guess = self.pose_at(odom_pose)
-        pts = self._endpoints_base(scan)
+        pts = self._endpoints_base(check_scan(scan))
         ok, reason = True, ""
         if len(pts) >= 10:
             pose, cov = self.match(guess, pts)

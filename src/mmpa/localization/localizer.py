@@ -20,7 +20,15 @@ import numpy as np
 
 from mmpa.errors import InvalidInputError, UnknownNameError
 from mmpa.geometry import Array
-from mmpa.localization.amcl import AMCL, AMCLConfig, PoseEstimate, compose_odom, finite_pose
+from mmpa.localization.amcl import (
+    AMCL,
+    AMCLConfig,
+    PoseEstimate,
+    check_scan,
+    compose_odom,
+    finite_cov,
+    finite_pose,
+)
 from mmpa.localization.enhanced import (
     EnhancedAMCL,
     EnhancedConfig,
@@ -83,11 +91,13 @@ class TrilaterationLocalizer:
 
     def initialize(self, pose: Array, cov: Array | None = None) -> None:
         self._pose = finite_pose(pose, "initial pose").copy()
+        if cov is not None:  # unused (the next fix sets it), but checked like AMCL's
+            finite_cov(cov, "initial covariance")
         self.valid = False
 
     def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
         finite_pose(odom_pose, "odometry pose")  # unused, but a NaN says the caller is broken
-        fix = self.observer.observe(scan)
+        fix = self.observer.observe(check_scan(scan))
         self.last_fix = fix
         self.valid = fix is not None
         if fix is not None:
@@ -97,6 +107,7 @@ class TrilaterationLocalizer:
         return PoseEstimate(self._pose.copy(), self._cov, 0, self.valid, self.name)
 
     def pose_at(self, odom_pose: Array) -> Array:
+        finite_pose(odom_pose, "odometry pose")  # unused, but a NaN says the caller is broken
         if self._pose is None:
             raise InvalidInputError("no reflector fix yet and no initial pose given")
         return self._pose.copy()
@@ -130,7 +141,7 @@ class TAMCL:
 
     def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
         odom_pose = finite_pose(odom_pose, "odometry pose")
-        fix = self.observer.observe(scan)
+        fix = self.observer.observe(check_scan(scan))
         if fix is not None:
             self._pose, self._cov, self._odom = fix.pose.copy(), fix.trilateration.cov, odom_pose
             self.mode = "trilateration"
@@ -163,6 +174,7 @@ def make_localizer(
     enhanced: EnhancedConfig | None = None,
 ) -> Localizer:
     """Build the localizer called ``method`` (one of :data:`METHODS`)."""
+    laser_pose = finite_pose(laser_pose, "laser pose")
     if method == "amcl":
         return AMCL(grid, laser_pose, amcl, rng)
     if method == "enhanced":

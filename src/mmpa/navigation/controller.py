@@ -7,7 +7,7 @@ the same controller runs on a localization estimate once that exists.
 from __future__ import annotations
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.geometry import Array, wrap_angle
 
@@ -17,15 +17,16 @@ __all__ = ["GoToPoseConfig", "go_to_pose_command"]
 class GoToPoseConfig(BaseModel):
     """Gains and tolerances (m, rad, m/s, rad/s)."""
 
-    model_config = ConfigDict(extra="forbid")
+    # NaN / inf refused: a NaN gain or limit would drive the base with NaN commands
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    k_v: float = 0.8
-    k_w: float = 2.0
-    max_v: float = 0.4
-    max_w: float = 0.8
-    turn_in_place: float = 0.5  # rad: heading error above which the base turns on the spot
-    pos_tol: float = 0.01
-    yaw_tol: float = float(np.deg2rad(0.5))
+    k_v: float = Field(0.8, gt=0)
+    k_w: float = Field(2.0, gt=0)
+    max_v: float = Field(0.4, gt=0)
+    max_w: float = Field(0.8, gt=0)
+    turn_in_place: float = Field(0.5, gt=0)  # rad: heading error above which it turns on the spot
+    pos_tol: float = Field(0.01, ge=0)
+    yaw_tol: float = Field(float(np.deg2rad(0.5)), ge=0)
 
 
 def go_to_pose_command(pose: Array, goal: Array, cfg: GoToPoseConfig) -> tuple[float, float, bool]:

@@ -22,7 +22,7 @@ __all__ = ["FollowerConfig", "PathFollower"]
 
 
 class FollowerConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # NaN / inf refused
 
     lookahead: float = Field(0.6, gt=0)  # m
     max_v: float = Field(0.4, gt=0)  # m/s

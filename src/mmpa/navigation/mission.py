@@ -78,7 +78,7 @@ def localize_standing(
 class NavigateConfig(BaseModel):
     """Navigation loop settings (Hz, s, m, rad)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # NaN / inf refused
 
     control_rate: float = Field(20.0, gt=0)
     scan_rate: float = Field(10.0, gt=0)

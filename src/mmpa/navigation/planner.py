@@ -36,7 +36,7 @@ __all__ = ["CostMap", "PlannerConfig", "plan_path"]
 
 
 class PlannerConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # NaN / inf refused
 
     inscribed_radius: float = Field(0.36, ge=0)  # m, lethal inflation
     inflation_radius: float = Field(0.9, ge=0)  # m

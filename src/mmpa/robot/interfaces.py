@@ -6,7 +6,9 @@ without touching them. Data types carry ROS-like fields and are plain numpy arra
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from numbers import Real
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -47,6 +49,9 @@ class PointCloud:
             raise InvalidInputError(
                 f"point cloud needs points (N,3) and colors (N,3); got {p.shape} and {c.shape}"
             )
+        for name, a in (("points", p), ("colors", c)):
+            if a.dtype.kind not in "biuf":
+                raise InvalidInputError(f"point cloud {name} must be numbers, got dtype {a.dtype}")
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
@@ -163,7 +168,25 @@ class LaserScan:
     frame_id: str = "laser"
 
     def __post_init__(self) -> None:
+        for f in ("angle_min", "angle_max", "angle_increment", "range_min", "range_max"):
+            v = getattr(self, f)
+            if isinstance(v, bool) or not isinstance(v, Real) or math.isnan(v):
+                raise InvalidInputError(f"scan {f} must be a number, got {v!r}")
+            if f.startswith("angle") and not math.isfinite(v):
+                raise InvalidInputError(f"scan {f} must be finite, got {v!r}")
+        if self.angle_increment == 0.0:
+            raise InvalidInputError("scan angle_increment must not be 0")
+        for f in ("ranges", "intensities"):
+            if not isinstance(getattr(self, f), np.ndarray):
+                raise InvalidInputError(
+                    f"scan {f} must be a numpy array, got {type(getattr(self, f)).__name__}"
+                )
         n = round((self.angle_max - self.angle_min) / self.angle_increment) + 1
+        if n < 1:
+            raise InvalidInputError(
+                f"scan angles [{self.angle_min}, {self.angle_max}] step "
+                f"{self.angle_increment} hold no beam"
+            )
         if self.ranges.shape != (n,) or self.intensities.shape != (n,):
             raise InvalidInputError(
                 f"scan has {self.ranges.shape} ranges and {self.intensities.shape} intensities, "

@@ -284,6 +284,11 @@ class TaskStore:
             yield
         except sqlite3.Error as e:
             raise self._sql_error(e, what) from None
+        except UnicodeDecodeError as e:  # sqlite3 decodes TEXT values (and the schema) as UTF-8
+            raise CorruptTaskError(
+                f"{self.path}: {what} (text that is not UTF-8: {e.reason} at byte {e.start}); "
+                "the file is damaged or its tables were edited outside mmpa"
+            ) from None
 
     def _rollback(self) -> None:
         if self._con is not None and self._con.in_transaction:
@@ -337,6 +342,10 @@ class TaskStore:
             raise CorruptTaskError(
                 f"{self.path}: schema_version.version holds {value!r}, not an integer"
             )
+        if value < 1:  # versions start at 1; migrating "from" -1 would look up version 0
+            raise CorruptTaskError(
+                f"{self.path}: schema_version.version holds {value}, expected 1 or more"
+            )
         return value
 
     def _migrate(self) -> None:
@@ -375,7 +384,15 @@ class TaskStore:
     def names(self) -> list[str]:
         """Stored task names, sorted."""
         with self._guard("cannot read the task names"):
-            return [r[0] for r in self.con.execute("SELECT name FROM tasks ORDER BY name")]
+            names = [r[0] for r in self.con.execute("SELECT name FROM tasks ORDER BY name")]
+        for n in names:  # the key column allows NULL and blobs when edited outside mmpa
+            if not isinstance(n, str):
+                kind = _SQL_TYPE.get(type(n), type(n).__name__)
+                raise CorruptTaskError(
+                    f"{self.path}: column tasks.name holds {n!r:.40} ({kind}), expected text; "
+                    "the file was edited outside mmpa"
+                )
+        return names
 
     def __contains__(self, name: object) -> bool:
         with self._guard("cannot look up a task"):
