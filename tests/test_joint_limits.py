@@ -219,6 +219,27 @@ def _peak_speed(world, seconds: float) -> np.ndarray:
     return peak
 
 
+def test_twin_arm_refuses_text_targets_and_bad_durations_before_moving(world) -> None:
+    """The audit's twin-arm cases: a target given as text (was a numpy ValueError), a
+    move duration of inf (was a RuckigError), NaN or -1 s (was silently ignored: the arm
+    moved): each a clear InvalidInputError, and the arm has not moved."""
+    arm = world.arm
+    arm.move_joints(HOME)
+    q0 = arm.joint_positions()
+    for bad in ("home", ["a"] * 6):
+        with pytest.raises(InvalidInputError, match="6 angles"):
+            arm.command(bad)
+        with pytest.raises(InvalidInputError, match="6 angles"):
+            arm.move_joints(bad)
+    with pytest.raises(InvalidInputError, match="arrays of numbers"):
+        arm.follow(np.arange(3) * 0.1, "path")
+    for duration in (float("inf"), float("nan"), -1.0):
+        with pytest.raises(InvalidInputError, match="move duration"):
+            arm.move_joints(HOME + 0.1, duration=duration)
+    world.step(0.1)
+    np.testing.assert_allclose(arm.joint_positions(), q0, atol=1e-6)
+
+
 def test_follow_refuses_a_jump_before_moving(world) -> None:
     arm = world.arm
     arm.move_joints(HOME)

@@ -9,9 +9,10 @@ properties. Units: m, rad, s.
 from __future__ import annotations
 
 from functools import cached_property
+from typing import Annotated
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from mmpa.errors import InvalidInputError
 from mmpa.geometry import Array, vec6_to_T
@@ -19,6 +20,11 @@ from mmpa.geometry import Array, vec6_to_T
 Vec6 = tuple[float, float, float, float, float, float]
 
 _PI = float(np.pi)
+
+#: a finite value > 0 (lengths, masses, rates, focal lengths) / >= 0 / a count > 0
+_Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+_NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+_Count = Annotated[int, Field(gt=0)]
 
 
 class _Frozen(BaseModel):
@@ -43,6 +49,13 @@ class DHParameters(_Frozen):
     def _six(cls, v: tuple[float, ...]) -> tuple[float, ...]:
         if len(v) != 6 or not all(np.isfinite(v)):
             raise ValueError(f"need 6 finite values, got {v}")
+        return v
+
+    @field_validator("a", "d")
+    @classmethod
+    def _link_length(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if any(abs(x) > 10.0 for x in v):  # m: an industrial arm's links are under 2 m
+            raise ValueError(f"link lengths must be within 10 m, got {v}")
         return v
 
     def as_arrays(self) -> tuple[Array, Array, Array, Array]:
@@ -72,7 +85,7 @@ class ArmDescription(_Frozen):
     # 40 rad/s^2 (``UR_JOINT_ACCELERATION_MAX``), the value here
     qdd_stream_max: tuple[float, ...] = (40.0, 40.0, 40.0, 40.0, 40.0, 40.0)
     qddd_max: tuple[float, ...] = (40.0, 40.0, 40.0, 60.0, 60.0, 60.0)  # rad/s^3, for ruckig
-    reach: float = 0.85  # m, from the shoulder axis
+    reach: _Pos = 0.85  # m, from the shoulder axis
     link_masses: tuple[float, ...] = (3.761, 8.058, 2.846, 1.37, 1.3, 0.365)  # kg
     home: tuple[float, ...] = (0.0, -1.8, 1.9, -1.67, -1.5708, 0.0)  # tucked, tool down
     # wrist camera 0.40 m ahead of and 0.85 m above the arm base, looking at the point 0.80 m
@@ -99,6 +112,10 @@ class ArmDescription(_Frozen):
         for name in ("qd_max", "qdd_max", "qdd_stream_max", "qddd_max"):
             if not all(np.isfinite(v) and v > 0 for v in getattr(self, name)):
                 raise ValueError(f"arm.{name} must be finite and positive for every joint")
+        for name in ("home", "view_bench"):
+            q = getattr(self, name)
+            if not all(lo <= x <= hi for x, lo, hi in zip(q, self.q_min, self.q_max, strict=True)):
+                raise ValueError(f"arm.{name} {list(q)} is outside the joint limits")
         if any(s < a for s, a in zip(self.qdd_stream_max, self.qdd_max, strict=True)):
             raise ValueError(
                 "arm.qdd_stream_max (the servo stream's hard acceleration limit) must be at "
@@ -119,28 +136,28 @@ class BaseDescription(_Frozen):
     z up (REP-105 ``base_footprint`` convention, so planar poses are ``T_map_base_link``).
     """
 
-    wheel_radius: float = 0.08
-    track_width: float = 0.46  # distance between wheel contact points
-    wheel_width: float = 0.04
-    caster_radius: float = 0.04
+    wheel_radius: _Pos = 0.08
+    track_width: _Pos = 0.46  # distance between wheel contact points
+    wheel_width: _Pos = 0.04
+    caster_radius: _Pos = 0.04
     caster_x: float = -0.28  # caster position along x in base_link
     body_size: tuple[float, float, float] = (0.70, 0.52, 0.34)  # box, m
     body_offset_x: float = -0.05  # body box center along x in base_link
-    mass: float = 60.0  # total, of which ballast_mass sits low behind the axle
-    ballast_mass: float = 35.0
+    mass: _Pos = 60.0  # total, of which ballast_mass sits low behind the axle
+    ballast_mass: _NonNeg = 35.0
     ballast_x: float = -0.18
-    ground_clearance: float = 0.08  # clears the 50 mm speed bump of Site 2'
-    max_wheel_speed: float = 12.0  # rad/s
-    max_linear_speed: float = 0.6  # m/s
-    max_angular_speed: float = 1.2  # rad/s
+    ground_clearance: _NonNeg = 0.08  # clears the 50 mm speed bump of Site 2'
+    max_wheel_speed: _Pos = 12.0  # rad/s
+    max_linear_speed: _Pos = 0.6  # m/s
+    max_angular_speed: _Pos = 1.2  # rad/s
 
 
 class GripperDescription(_Frozen):
     """Two-finger parallel gripper (Robotiq 2F-85 class)."""
 
-    stroke: float = 0.085  # m, fully open finger gap
-    length: float = 0.15  # m, flange to fingertip center (the TCP)
-    max_force: float = 110.0  # N
+    stroke: _Pos = 0.085  # m, fully open finger gap
+    length: _Pos = 0.15  # m, flange to fingertip center (the TCP)
+    max_force: _Pos = 110.0  # N
 
     @property
     def T_flange_tcp(self) -> Array:
@@ -151,10 +168,10 @@ class GripperDescription(_Frozen):
 class CameraIntrinsics(_Frozen):
     """Pinhole intrinsics: ``u = fx x/z + cx``, ``v = fy y/z + cy`` (pixels)."""
 
-    width: int = 640
-    height: int = 480
-    fx: float = 615.0
-    fy: float = 615.0
+    width: _Count = 640
+    height: _Count = 480
+    fx: _Pos = 615.0
+    fy: _Pos = 615.0
     cx: float = 319.5
     cy: float = 239.5
 
@@ -199,11 +216,20 @@ class CameraDescription(_Frozen):
     T_flange_camera_vec: Vec6 = (0.0, -0.095, 0.045, 0.0, 0.0, 0.0)
     color: CameraIntrinsics = CameraIntrinsics()
     depth: CameraIntrinsics = CameraIntrinsics()  # aligned to color
-    depth_focal_native: float = 385.0  # px, of the stereo depth imager (noise model)
-    baseline: float = 0.050  # m, stereo baseline (noise model)
-    min_range: float = 0.2
-    max_range: float = 4.0
-    rate: float = 30.0  # Hz
+    depth_focal_native: _Pos = 385.0  # px, of the stereo depth imager (noise model)
+    baseline: _Pos = 0.050  # m, stereo baseline (noise model)
+    min_range: _Pos = 0.2
+    max_range: _Pos = 4.0
+    rate: _Pos = 30.0  # Hz
+
+    @model_validator(mode="after")
+    def _ranges(self) -> CameraDescription:
+        if self.min_range >= self.max_range:
+            raise ValueError(
+                f"camera.min_range ({self.min_range}) must be below camera.max_range "
+                f"({self.max_range})"
+            )
+        return self
 
     @cached_property
     def T_flange_camera(self) -> Array:
@@ -215,11 +241,20 @@ class LidarDescription(_Frozen):
 
     T_base_link_laser_vec: Vec6 = (0.30, 0.0, 0.22, 0.0, 0.0, 0.0)
     angle_min: float = -_PI
-    angle_increment: float = float(np.deg2rad(0.25))
-    num_beams: int = 1440
-    range_min: float = 0.05
-    range_max: float = 20.0
-    rate: float = 10.0  # Hz
+    angle_increment: _Pos = float(np.deg2rad(0.25))
+    num_beams: _Count = 1440
+    range_min: _NonNeg = 0.05
+    range_max: _Pos = 20.0
+    rate: _Pos = 10.0  # Hz
+
+    @model_validator(mode="after")
+    def _ranges(self) -> LidarDescription:
+        if self.range_min >= self.range_max:
+            raise ValueError(
+                f"lidar.range_min ({self.range_min}) must be below lidar.range_max "
+                f"({self.range_max})"
+            )
+        return self
 
     @property
     def angle_max(self) -> float:
@@ -239,7 +274,7 @@ class PhotoSensorDescription(_Frozen):
     """Photoelectric laser sensor on the tool; the beam runs along the sensor's +z axis."""
 
     T_flange_sensor_vec: Vec6 = (0.0, 0.0, 0.02, 0.0, 0.0, 0.0)
-    max_range: float = 0.5  # m, beyond that a reflector does not trigger it
+    max_range: _Pos = 0.5  # m, beyond that a reflector does not trigger it
 
     @cached_property
     def T_flange_sensor(self) -> Array:

@@ -623,7 +623,10 @@ class SimArm:
         return self._w.data.qvel[self._w._arm_dadr].copy()
 
     def _check(self, q: Array) -> Array:
-        q = np.asarray(q, float)
+        try:
+            q = np.asarray(q, float)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"joint target must be 6 angles (rad), got {q!r:.80}") from None
         if q.shape != (6,):
             raise InvalidInputError(f"joint target must be 6 finite angles, got shape {q.shape}")
         return check_positions(q, self.limits)
@@ -661,6 +664,10 @@ class SimArm:
         """Move to ``q`` along a jerk-limited trajectory, then settle. The arm lands within its
         repeatability (seeded noise) of the target, as a real arm does."""
         q = self._check(q)
+        if duration is not None and not (np.isfinite(duration) and duration >= 0):
+            raise InvalidInputError(
+                f"move duration must be a finite number of seconds >= 0 (or None), got {duration}"
+            )
         T, sample = self.plan(q, min_duration=duration or 0.0)
         w = self._w
         noise = w._rng_joint.normal(0.0, w.error_model.joint_noise_sigma, 6)
@@ -708,8 +715,11 @@ class SimArm:
         With ``record_hz`` the encoders are read every ``1 / record_hz`` s while the arm moves
         (as a teach-in recorder does) and ``(t, q)`` is returned: ``t`` (M,) from 0, ``q`` (M, 6).
         """
-        times = np.asarray(times, float)
-        q_path = np.asarray(q_path, float)
+        try:
+            times = np.asarray(times, float)
+            q_path = np.asarray(q_path, float)
+        except (TypeError, ValueError):
+            raise InvalidInputError("times and q_path must be arrays of numbers") from None
         if q_path.ndim != 2 or q_path.shape[1] != 6 or times.shape != (q_path.shape[0],):
             raise InvalidInputError(
                 f"need times (T,) and q_path (T, 6), got {times.shape}, {q_path.shape}"
