@@ -27,6 +27,12 @@ _NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 _Count = Annotated[int, Field(gt=0)]
 
 
+def _check_below(lo: float, hi: float, lo_name: str, hi_name: str) -> None:
+    """Raise ``ValueError`` naming both fields unless ``lo < hi`` (a sensor's range)."""
+    if lo >= hi:
+        raise ValueError(f"{lo_name} ({lo}) must be below {hi_name} ({hi})")
+
+
 class _Frozen(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid", arbitrary_types_allowed=True)
 
@@ -224,11 +230,7 @@ class CameraDescription(_Frozen):
 
     @model_validator(mode="after")
     def _ranges(self) -> CameraDescription:
-        if self.min_range >= self.max_range:
-            raise ValueError(
-                f"camera.min_range ({self.min_range}) must be below camera.max_range "
-                f"({self.max_range})"
-            )
+        _check_below(self.min_range, self.max_range, "camera.min_range", "camera.max_range")
         return self
 
     @cached_property
@@ -249,11 +251,7 @@ class LidarDescription(_Frozen):
 
     @model_validator(mode="after")
     def _ranges(self) -> LidarDescription:
-        if self.range_min >= self.range_max:
-            raise ValueError(
-                f"lidar.range_min ({self.range_min}) must be below lidar.range_max "
-                f"({self.range_max})"
-            )
+        _check_below(self.range_min, self.range_max, "lidar.range_min", "lidar.range_max")
         return self
 
     @property
