@@ -277,3 +277,16 @@ def test_robot_description_refuses_impossible_values(field, override, message) -
     with pytest.raises(ValidationError, match=message) as e:
         RobotDescription(**override)
     assert field.split(".")[0] in str(e.value)
+
+
+@pytest.mark.parametrize("value", ["0:", "[realistic]", "{a: 1}"])
+def test_a_profile_that_is_not_a_name_is_refused(value: str) -> None:
+    """``--set errors.profile=0:`` (YAML: a mapping) raised ``TypeError: unhashable type``
+    from the profile lookup (found by tests/test_fuzz.py under xdist); now a ConfigError
+    naming the field."""
+    from mmpa.config import load_config
+    from mmpa.errors import ConfigError
+    from mmpa.experiments.demo import DemoConfig
+
+    with pytest.raises(ConfigError, match=r"errors\.profile"):
+        load_config(DemoConfig, None, [f"errors.profile={value}"])

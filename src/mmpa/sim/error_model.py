@@ -315,8 +315,8 @@ class ErrorModelConfig(_Cfg):
         if not isinstance(data, dict):
             return data
         name = data.get("profile", "realistic")
-        if name not in PROFILES:
-            return data  # the Literal field reports the unknown name
+        if not isinstance(name, str) or name not in PROFILES:
+            return data  # the Literal field reports the unknown name (or a mapping, a list)
         given = {k: (v.model_dump() if isinstance(v, BaseModel) else v) for k, v in data.items()}
         return _merge(PROFILES[name], given)
 
