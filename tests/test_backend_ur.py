@@ -68,6 +68,12 @@ def test_far_start_gets_a_movej_and_bad_paths_send_nothing() -> None:
         arm.follow(t, out)
     with pytest.raises(InvalidInputError, match="NaN"):
         arm.move_joints(np.full(6, np.nan))
+    with pytest.raises(InvalidInputError, match="6 angles"):  # text: was a numpy ValueError
+        arm.move_joints("home")
+    with pytest.raises(InvalidInputError, match="6 angles"):
+        arm.command(["a"] * 6)
+    with pytest.raises(InvalidInputError, match="q_path"):
+        arm.follow(t, "path")
     assert len(fake.calls) == n  # nothing was sent
 
 

@@ -231,7 +231,7 @@ def test_twin_arm_refuses_text_targets_and_bad_durations_before_moving(world) ->
             arm.command(bad)
         with pytest.raises(InvalidInputError, match="6 angles"):
             arm.move_joints(bad)
-    with pytest.raises(InvalidInputError, match="arrays of numbers"):
+    with pytest.raises(InvalidInputError, match="q_path must be numbers"):
         arm.follow(np.arange(3) * 0.1, "path")
     for duration in (float("inf"), float("nan"), -1.0):
         with pytest.raises(InvalidInputError, match="move duration"):

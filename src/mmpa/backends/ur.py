@@ -33,7 +33,14 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.errors import InvalidInputError, MMPAError
 from mmpa.geometry import Array
-from mmpa.robot.limits import JointLimits, check_path, check_positions, limit_setpoint
+from mmpa.robot.limits import (
+    JointLimits,
+    StreamLimitsSwitch,
+    as_floats,
+    check_path,
+    check_target,
+    limit_setpoint,
+)
 
 __all__ = ["URArm", "URConfig"]
 
@@ -54,7 +61,7 @@ class URConfig(BaseModel):
     stop_deceleration: float = Field(2.0, gt=0)  # rad/s^2 of servoStop / stopJ
 
 
-class URArm:
+class URArm(StreamLimitsSwitch):
     """A UR arm over RTDE as an mmpa ``Arm`` (module docstring)."""
 
     def __init__(
@@ -85,18 +92,8 @@ class URArm:
         self._stream: threading.Thread | None = None
         self._stop = threading.Event()
         self.stream_error: Exception | None = None
-        #: the limits of the streamed set-points (``command``; see the twin's ``SimArm``)
+        #: the limits of the streamed set-points (``command``; ``StreamLimitsSwitch``)
         self.stream_limits = limits
-
-    @property
-    def stream_acceleration_limited(self) -> bool:
-        """True (the default): ``command``'s set-points keep ``qdd_max``; False: the hard
-        stream limit ``qdd_stream_max`` (:meth:`JointLimits.stream`)."""
-        return bool(np.array_equal(self.stream_limits.qdd_max, self.limits.qdd_max))
-
-    @stream_acceleration_limited.setter
-    def stream_acceleration_limited(self, on: bool) -> None:
-        self.stream_limits = self.limits.stream(on)
 
     # ------------------------------------------------------------------ state
     def joint_positions(self) -> Array:
@@ -120,10 +117,7 @@ class URArm:
     def move_joints(self, q: Array, duration: float | None = None) -> None:
         """``moveJ`` to ``q`` at ``speed_fraction`` of the limits (``duration`` ignored: the
         controller times the move)."""
-        q = np.asarray(q, dtype=float)
-        if q.shape != (6,):
-            raise InvalidInputError(f"joint target must be 6 angles, got shape {q.shape}")
-        q = check_positions(q, self.limits)
+        q = check_target(q, self.limits)
         self.stop_stream()
         self._check_can_move()
         f = self.cfg.speed_fraction
@@ -138,8 +132,8 @@ class URArm:
         """Stream ``q_path`` (T, 6) at ``times`` (T,) s with ``servoJ`` at the controller's
         rate (linear interpolation between samples); with ``record_hz`` also read the
         encoders at that rate and return ``(t (M,), q (M, 6))``."""
-        times = np.asarray(times, dtype=float)
-        q_path = np.asarray(q_path, dtype=float)
+        times = as_floats(times, "follow: times")
+        q_path = as_floats(q_path, "follow: q_path")
         check_path(times, q_path, self.limits)  # before anything moves
         if record_hz is not None and not (np.isfinite(record_hz) and record_hz > 0):
             raise InvalidInputError(f"record_hz must be a positive rate, got {record_hz}")
@@ -211,10 +205,7 @@ class URArm:
         """Streaming target (as ``servoJ`` from a slower loop): a background thread at the
         controller's rate moves the set-point toward ``q`` within ``stream_limits``
         (velocity and acceleration)."""
-        q = np.asarray(q, dtype=float)
-        if q.shape != (6,):
-            raise InvalidInputError(f"joint target must be 6 angles, got shape {q.shape}")
-        q = check_positions(q, self.limits)
+        q = check_target(q, self.limits)
         if self.stream_error is not None:
             raise MMPAError(f"the command stream stopped: {self.stream_error}")
         with self._lock:

@@ -26,8 +26,11 @@ from mmpa.robot.description import ArmDescription
 
 __all__ = [
     "JointLimits",
+    "StreamLimitsSwitch",
+    "as_floats",
     "check_path",
     "check_positions",
+    "check_target",
     "limit_acceleration",
     "limit_setpoint",
     "path_accelerations",
@@ -71,10 +74,48 @@ class JointLimits:
         return dataclasses.replace(self, qdd_max=np.asarray(self.qdd_stream_max, float))
 
 
+class StreamLimitsSwitch:
+    """The ``stream_acceleration_limited`` switch of an arm backend's command stream, over
+    its ``limits`` and ``stream_limits`` (:class:`JointLimits`, set by the backend): True
+    (the default) keeps the streamed set-points within ``qdd_max`` (``stream_limits`` =
+    ``limits``), False within the hard stream limit ``qdd_stream_max``
+    (:meth:`JointLimits.stream`). The tracking grasp sets it from its config
+    (``GraspConfig.stream_accel_limit``)."""
+
+    limits: JointLimits
+    stream_limits: JointLimits
+
+    @property
+    def stream_acceleration_limited(self) -> bool:
+        return bool(np.array_equal(self.stream_limits.qdd_max, self.limits.qdd_max))
+
+    @stream_acceleration_limited.setter
+    def stream_acceleration_limited(self, on: bool) -> None:
+        self.stream_limits = self.limits.stream(on)
+
+
+def as_floats(x: object, what: str) -> Array:
+    """``x`` as a float array, or :class:`InvalidInputError` naming ``what`` when it holds
+    something that is not a number (text, None, ragged lists)."""
+    try:
+        return np.asarray(x, dtype=float)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{what} must be numbers, got {x!r:.80}") from None
+
+
+def check_target(q: Array, limits: JointLimits, what: str = "joint target") -> Array:
+    """One joint target: ``q`` as a float array of shape (6,) within the limits
+    (:func:`check_positions`), else :class:`InvalidInputError` / :class:`JointLimitError`."""
+    q = as_floats(q, f"{what} (6 angles, rad)")
+    if q.shape != (6,):
+        raise InvalidInputError(f"{what} must be 6 angles, got shape {q.shape}")
+    return check_positions(q, limits, what)
+
+
 def check_positions(q: Array, limits: JointLimits, what: str = "joint target") -> Array:
     """Return ``q`` (6,) or (N, 6) as floats; raise if any value is not finite
     (:class:`InvalidInputError`) or outside ``[q_min, q_max]`` (:class:`JointLimitError`)."""
-    q = np.asarray(q, dtype=float)
+    q = as_floats(q, what)
     if q.shape[-1:] != (6,) or q.ndim not in (1, 2):
         raise InvalidInputError(f"{what} must have shape (6,) or (N, 6), got {q.shape}")
     if not np.all(np.isfinite(q)):
@@ -111,8 +152,8 @@ def check_path(t: Array, q: Array, limits: JointLimits, what: str = "joint path"
     ``t`` (N,) s, ``q`` (N, 6) rad. Raises :class:`InvalidInputError` or
     :class:`JointLimitError`.
     """
-    t = np.asarray(t, dtype=float)
-    q = np.asarray(q, dtype=float)
+    t = as_floats(t, f"{what}: its times")
+    q = as_floats(q, f"{what}: its joint angles")
     if t.ndim != 1 or q.shape != (len(t), 6) or len(t) < 1:
         raise InvalidInputError(f"{what}: need t (N,) and q (N, 6), got {t.shape}, {q.shape}")
     if not np.all(np.isfinite(t)):

@@ -513,7 +513,7 @@ class TrackingGrasp:
         # lagged a tick: 0.63 at 0.2 m/s; a velocity step a tick that the arm's limiter
         # shaped overshot: 0.28; N = 60, see the module docstring)
         qdd_hard = np.asarray(rb.arm.qdd_stream_max, float)
-        self._lim_vel = JointLimits(self._q_lo, self._q_hi, qd, qdd_hard)
+        self._lim_hard = JointLimits(self._q_lo, self._q_hi, qd, qdd_hard)
         #: limits of the intercept plans ("intercept"): the stream's, and the jerk limit
         jerk = np.asarray(rb.arm.qddd_max, float) * self.cfg.intercept_jerk_scale
         qdd_i = np.asarray(rb.arm.qdd_max, float) * self.cfg.intercept_accel_fraction
@@ -796,7 +796,7 @@ class TrackingGrasp:
         """Limits of the streamed set-points now: the arm's qd_max, and
         ``joint_accel_fraction`` of its qdd_max while ``limited``, else its hard stream
         limit ``qdd_stream_max`` (issue 22)."""
-        return self._lim_acc if self.limited else self._lim_vel
+        return self._lim_acc if self.limited else self._lim_hard
 
     def _set_limited(self, arm: Any, on: bool) -> None:
         """Stream within qdd_max (``on``) or qd_max and the hard ``qdd_stream_max`` from now

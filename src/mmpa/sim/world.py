@@ -24,7 +24,14 @@ from mmpa.errors import InvalidInputError, SimulationError, UnknownNameError
 from mmpa.geometry import Array, T_to_se2, make_T, rpy_to_R
 from mmpa.robot.description import RobotDescription, default_robot
 from mmpa.robot.interfaces import Odometry
-from mmpa.robot.limits import JointLimits, check_path, check_positions, limit_setpoint
+from mmpa.robot.limits import (
+    JointLimits,
+    StreamLimitsSwitch,
+    as_floats,
+    check_path,
+    check_target,
+    limit_setpoint,
+)
 from mmpa.sim.error_model import ErrorModel, ErrorModelConfig
 from mmpa.sim.lidar_noise import SmoothWarp
 from mmpa.sim.mjcf import MOUNT_JOINTS, BuiltModel, build_model
@@ -571,7 +578,7 @@ class SimBase:
         return self._w.odometry.odometry()
 
 
-class SimArm:
+class SimArm(StreamLimitsSwitch):
     """Position-controlled arm following jerk-limited (ruckig) joint trajectories.
 
     Every motion respects the joint limits (``limits``): ``move_joints`` plans within the
@@ -603,18 +610,6 @@ class SimArm:
         #: the actuators' force ranges bound the acceleration further)
         self.stream_limits = self.limits
 
-    @property
-    def stream_acceleration_limited(self) -> bool:
-        """True (the default): ``command`` keeps the set-points within ``qdd_max``
-        (``stream_limits`` = ``limits``); False: within the hard stream limit
-        ``qdd_stream_max`` (:meth:`JointLimits.stream`). The tracking grasp sets it from its
-        config (``GraspConfig.stream_accel_limit``)."""
-        return bool(np.array_equal(self.stream_limits.qdd_max, self.limits.qdd_max))
-
-    @stream_acceleration_limited.setter
-    def stream_acceleration_limited(self, on: bool) -> None:
-        self.stream_limits = self.limits.stream(on)
-
     def joint_positions(self) -> Array:
         """Encoder readings (rad), shape (6,)."""
         return self._w.data.qpos[self._w._arm_qadr].copy()
@@ -623,13 +618,7 @@ class SimArm:
         return self._w.data.qvel[self._w._arm_dadr].copy()
 
     def _check(self, q: Array) -> Array:
-        try:
-            q = np.asarray(q, float)
-        except (TypeError, ValueError):
-            raise InvalidInputError(f"joint target must be 6 angles (rad), got {q!r:.80}") from None
-        if q.shape != (6,):
-            raise InvalidInputError(f"joint target must be 6 finite angles, got shape {q.shape}")
-        return check_positions(q, self.limits)
+        return check_target(q, self.limits)
 
     def plan(self, q_target: Array, min_duration: float = 0.0) -> tuple[float, object]:
         """Jerk-limited time-optimal trajectory from the current state to ``q_target``.
@@ -715,11 +704,8 @@ class SimArm:
         With ``record_hz`` the encoders are read every ``1 / record_hz`` s while the arm moves
         (as a teach-in recorder does) and ``(t, q)`` is returned: ``t`` (M,) from 0, ``q`` (M, 6).
         """
-        try:
-            times = np.asarray(times, float)
-            q_path = np.asarray(q_path, float)
-        except (TypeError, ValueError):
-            raise InvalidInputError("times and q_path must be arrays of numbers") from None
+        times = as_floats(times, "follow: times")
+        q_path = as_floats(q_path, "follow: q_path")
         if q_path.ndim != 2 or q_path.shape[1] != 6 or times.shape != (q_path.shape[0],):
             raise InvalidInputError(
                 f"need times (T,) and q_path (T, 6), got {times.shape}, {q_path.shape}"
