@@ -128,8 +128,15 @@ def reflectors_cmd(
     spacing: Annotated[
         float, typer.Option(help="m between survey stops along the path", min=0.1, max=100.0)
     ] = 1.0,
-    scans: Annotated[int, typer.Option(help="scans per survey stop", min=1, max=1000)] = 10,
+    scans: Annotated[int, typer.Option(help="scans per survey stop", min=1, max=1000)] = 30,
     method: Annotated[str, typer.Option(help="laser-only localizer: hector or amcl")] = "hector",
+    bearing: Annotated[
+        str,
+        typer.Option(
+            help="reflector bearing: intensity (centroid of the intensity profile, sub-beam) "
+            "or mean (the cluster's mean beam angle, paper 001)"
+        ),
+    ] = "intensity",
     anchor: Annotated[
         str,
         typer.Option(
@@ -165,6 +172,7 @@ def reflectors_cmd(
     _choice("profile", profile, _PROFILES)
     _choice("laser-only localizer", method, ("hector", "amcl"))
     _choice("anchor", anchor, ("poses", "reflector-map"))
+    _choice("bearing", bearing, ("intensity", "mean"))
     stops = tuple(s.strip() for s in route.split(",") if s.strip())
     if not stops:
         raise typer.BadParameter("--route needs at least one site")
@@ -183,6 +191,7 @@ def reflectors_cmd(
             profile=profile,  # type: ignore[arg-type]
             map_match=map_match,
             survey={} if refine is None else {"refine_poses": refine},
+            detection={"bearing": bearing},
         )
         with console.status("surveying the reflectors"):
             s = run_reflector_survey(cfg, out, log=lambda m: console.log(m, highlight=False))

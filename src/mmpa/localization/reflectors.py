@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from itertools import combinations
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -58,6 +59,12 @@ class DetectionConfig(BaseModel):
     # something in front of it (a person): its center is biased by up to ``radius``
     occlusion_margin: float = Field(0.08, gt=0)  # m
     occlusion_beams: int = Field(2, ge=1)  # beams checked on each side of a cluster
+    # the bearing of a reflector's centre: "mean" of the cluster's beam angles (paper 001;
+    # quantized to the beam spacing) or the "intensity" centroid over the cluster and its
+    # partly lit neighbours (sub-beam: a beam whose spot half covers the reflector returns
+    # about half the intensity)
+    bearing: Literal["mean", "intensity"] = "mean"
+    edge_beams: int = Field(2, ge=0)  # neighbours on each side in the intensity centroid
 
 
 @dataclass(frozen=True)
@@ -219,6 +226,8 @@ def detect_reflectors(scan: LaserScan, cfg: DetectionConfig | None = None) -> Re
         if np.linalg.norm(p[0] - p[-1]) > cfg.max_width:
             continue
         bearing = float(np.angle(np.exp(1j * a[cl]).mean()))
+        if cfg.bearing == "intensity":
+            bearing = _intensity_bearing(cl, a, inten, r, valid, bearing, n, full_circle, cfg)
         rr = float(np.mean(r[cl]))
         u = np.array([np.cos(bearing), np.sin(bearing)])
         beta = np.angle(np.exp(1j * (a[cl] - bearing)))
@@ -241,6 +250,53 @@ def detect_reflectors(scan: LaserScan, cfg: DetectionConfig | None = None) -> Re
         np.array(beams, dtype=int),
         np.array(cut, dtype=bool),
     )
+
+
+def _intensity_bearing(
+    cl: np.ndarray,
+    a: Array,
+    inten: Array,
+    r: Array,
+    valid: np.ndarray,
+    bearing: float,
+    n: int,
+    full_circle: bool,
+    cfg: DetectionConfig,
+) -> float:
+    """Bearing (rad) of a reflector's centre as the centroid of the intensity profile over
+    cluster ``cl`` and its partly lit neighbours: ``phi = sum_i w_i a_i / sum_i w_i`` with
+    ``w_i = I_i - I_bg`` (clipped at 0). The neighbours are up to ``edge_beams`` valid beams
+    on each side below the threshold whose range is within ``max_range_jump`` of the
+    cluster's (a mixed return is pulled to the bright reflector; a closer object in front
+    ends the window); ``I_bg`` is the lowest intensity among all ``edge_beams`` beams on
+    either side (the background surface). The profile is the reflector's angular extent
+    blurred by the beam's spot; for a symmetric spot its centroid is the reflector's
+    centre, and the partly lit edge beams place it between beams, where the cluster's mean
+    angle moves in whole beam steps. Falls back to ``bearing`` (the mean angle) if the
+    weights vanish."""
+    r_cl = float(np.median(r[cl]))
+    side: list[np.ndarray] = []
+    bg: list[float] = []
+    for start, step in ((cl[0], -1), (cl[-1], 1)):
+        nb = start + step * np.arange(1, cfg.edge_beams + 1)
+        if full_circle:
+            nb = nb % n
+        else:
+            nb = nb[(nb >= 0) & (nb < n)]
+        lit = valid[nb] & np.isfinite(inten[nb])
+        bg.extend(inten[nb][lit & (inten[nb] < cfg.intensity_threshold)].tolist())
+        ok = lit & (inten[nb] < cfg.intensity_threshold)
+        ok &= np.abs(np.where(lit, r[nb], np.inf) - r_cl) <= cfg.max_range_jump
+        # the window ends at the first beam that is not a plain neighbour
+        stop = np.flatnonzero(~ok)
+        side.append(nb[: stop[0]] if stop.size else nb)
+    win = np.concatenate([side[0][::-1], cl, side[1]])
+    i_bg = min(bg) if bg else float(inten[win].min())
+    w = np.clip(inten[win] - i_bg, 0.0, None)
+    if not np.isfinite(w).all() or w.sum() <= 0:
+        return bearing
+    d = np.angle(np.exp(1j * (a[win] - bearing)))
+    return float(bearing + (w @ d) / w.sum())
 
 
 def _occluded(
