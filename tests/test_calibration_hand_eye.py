@@ -196,6 +196,42 @@ def test_joint_calibration_recovers_hand_eye_and_kinematics() -> None:
     assert after["rms_mm"] < before["rms_mm"] * 0.8, (before, after)
 
 
+def test_last_link_error_is_indistinguishable_from_the_hand_eye() -> None:
+    """Closed form: an arm whose last DH link is off by E6 carrying the camera at X puts the
+    camera exactly where the same arm with a nominal last link puts it at E6 X, in every
+    configuration (so no data from a flange-mounted sensor can split them); E6 does not
+    depend on q6, and the identity fails for an error on link 5 (the test can tell)."""
+    from mmpa.calibration.kinematic import random_configurations
+    from mmpa.experiments.calibrate import last_link_error
+    from mmpa.robot.description import DHParameters
+
+    rng = np.random.default_rng(3)
+    nom = DHParameters()
+
+    def perturbed(links: list[int]) -> DHParameters:
+        vals = {k: np.array(getattr(nom, k)) for k in ("a", "d", "alpha", "theta_offset")}
+        for i in links:
+            vals["a"][i] += rng.normal(0, 5e-4)
+            vals["d"][i] += rng.normal(0, 5e-4)
+            vals["alpha"][i] += rng.normal(0, np.deg2rad(0.05))
+            vals["theta_offset"][i] += rng.normal(0, np.deg2rad(0.05))
+        return DHParameters(**{k: tuple(float(x) for x in v) for k, v in vals.items()})
+
+    X = _random_pose(rng, 0.3, 0.05)
+    qs = random_configurations(50, 0)
+    true6 = perturbed([5])
+    E6 = last_link_error(nom, true6)
+    assert pose_error(E6, np.eye(4))[0] > 0.3  # mm: a real error
+    for q in qs:
+        et, er = pose_error(fk(true6, q) @ X, fk(nom, q) @ E6 @ X)
+        assert et < 1e-9 and er < 1e-9
+    true5 = perturbed([4])
+    E5 = last_link_error(nom, true5)  # identity: link 6 is nominal
+    assert pose_error(E5, np.eye(4))[0] < 1e-9
+    worst = max(pose_error(fk(true5, q) @ X, fk(nom, q) @ X)[0] for q in qs)
+    assert worst > 0.1  # link 5's error moves the camera with the configuration
+
+
 def test_joint_calibration_bad_input() -> None:
     from mmpa.calibration.kinematic import BoardObservations, calibrate_kinematics_hand_eye
 
@@ -360,29 +396,35 @@ def test_twin_recovers_hand_eye_without_dh_error(tmp_path) -> None:
 
 
 def test_cli_hand_eye_realistic(tmp_path) -> None:
+    """``mmpa calibrate hand-eye`` at its defaults (joint method, 40 stations at 0.32-0.62 m),
+    realistic seed 0, against the twin's truth. The last DH link's error E6 (1.5 mm on this
+    robot) cannot be told from the hand-eye by any flange-mounted sensor
+    (test_last_link_error_is_indistinguishable_from_the_hand_eye), so the identifiable
+    hand-eye E6 X_true is met within the issue's 0.5 mm / 0.1 deg (measured 0.12 mm,
+    0.021 deg; seeds 0-9: 0.05-0.46 mm, <= 0.034 deg), and the true one within E6 + 0.5."""
     from mmpa.cli.calibrate import register
 
     app = typer.Typer()
     register(app)
     out = tmp_path / "he"
-    r = CliRunner().invoke(
-        app, ["calibrate", "hand-eye", "--stations", "12", "--method", "joint", "--out", str(out)]
-    )
+    r = CliRunner().invoke(app, ["calibrate", "hand-eye", "--out", str(out)])
     assert r.exit_code == 0, r.output
     s = json.loads((out / "summary.json").read_text())
-    assert s["profile"] == "realistic" and s["stations_used"] >= 10
+    assert s["profile"] == "realistic" and s["stations_used"] >= 36
     assert set(s["methods"]) == set(METHODS)
     assert s["method"] == "joint" and set(s["by_method"]) == {"opencv", "joint"}
-    # seed 0 under realistic: the last DH link's error (1.5 mm, unobservable from camera data)
-    # bounds the error against the TRUE hand-eye; against the effective one E6 X_true (what
-    # the data determine) the joint estimate is close (measured 12 stations: see below)
     joint = s["by_method"]["joint"]
-    # measured 12 stations: 1.0 mm (the depth axis is weakly identified: posterior SD 0.5 mm)
-    assert joint["error_vs_effective_trans_mm"] < 1.5 and joint["error_vs_effective_rot_deg"] < 0.05
+    assert s["error_identifiable_trans_mm"] == joint["error_vs_effective_trans_mm"]
+    assert s["error_identifiable_trans_mm"] < 0.5 and s["error_identifiable_rot_deg"] < 0.1
+    assert s["within_target_identifiable"]
     e6 = s["diagnostic"]["last_link_dh_error_trans_mm"]
-    assert s["error_trans_mm"] < e6 + 1.5 and s["error_rot_deg"] < 0.1
+    assert e6 > 1.0  # this robot's last link is off by more than the target
+    assert s["error_trans_mm"] < e6 + 0.5 and s["error_rot_deg"] < 0.1
     assert s["error_rot_deg"] < s["nominal_error_rot_deg"] / 5
     assert s["diagnostic"]["true_flange_poses"]["error_trans_mm"] < 0.5
+    # the per-station base priors stand for a real motion of the arm base (0.3 mm, 0.03 deg)
+    shift, rot = s["diagnostic"]["arm_base_motion_mm_deg_max"]
+    assert 0.1 < shift < 1.5 and 0.005 < rot < 0.1
     fk_err = s["kinematics"]["fk_error"]["camera"]
     assert fk_err["calibrated_joint"]["rot_rms_deg"] < fk_err["nominal_opencv"]["rot_rms_deg"]
     X = np.array(s["T_flange_camera"])

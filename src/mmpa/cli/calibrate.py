@@ -41,7 +41,7 @@ def hand_eye_cmd(
     site: Annotated[str, typer.Option(help="site of the scene the board stands in front of")] = "0",
     stations: Annotated[
         int, typer.Option(help="number of views of the board", min=3, max=100)
-    ] = 15,
+    ] = 40,
     seed: Annotated[int, typer.Option(help="robot instance of the twin's error model", min=0)] = 0,
     profile: Annotated[
         str, typer.Option(help="error model profile: ideal, reference, realistic, harsh")
@@ -52,7 +52,7 @@ def hand_eye_cmd(
             help="joint: the arm's DH corrections with the hand-eye (MAP over the board "
             "corners); opencv: cv2.calibrateHandEye with the nominal kinematics"
         ),
-    ] = "opencv",
+    ] = "joint",
 ) -> None:
     """Calibrate the wrist camera's pose on the flange (eye-in-hand) in the twin: a ChArUco
     board in front of SITE, STATIONS planned views, cv2.calibrateHandEye with all five
@@ -76,11 +76,15 @@ def hand_eye_cmd(
         fail(e)
     console.print(
         f"hand-eye ({s['method']}, {s['stations_used']} stations): error "
-        f"{s['error_trans_mm']:.3f} mm, {s['error_rot_deg']:.4f} deg against the true hand-eye "
-        f"(opencv {s['by_method']['opencv']['error_trans_mm']:.3f} mm, joint "
-        f"{s['by_method']['joint']['error_trans_mm']:.3f} mm; tool-point FK error "
+        f"{s['error_trans_mm']:.3f} mm, {s['error_rot_deg']:.4f} deg against the true hand-eye, "
+        f"{s['error_identifiable_trans_mm']:.3f} mm, {s['error_identifiable_rot_deg']:.4f} deg "
+        f"against its identifiable part E6 X (the last DH link's error "
+        f"{s['diagnostic']['last_link_dh_error_trans_mm']:.2f} mm is not observable); opencv "
+        f"{s['by_method']['opencv']['error_vs_effective_trans_mm']:.3f} mm, joint "
+        f"{s['by_method']['joint']['error_vs_effective_trans_mm']:.3f} mm against E6 X; "
+        f"tool-point FK error "
         f"{s['kinematics']['fk_error']['tcp']['nominal']['rms_mm']:.2f} -> "
-        f"{s['kinematics']['fk_error']['tcp']['calibrated']['rms_mm']:.2f} mm RMS); wrote "
+        f"{s['kinematics']['fk_error']['tcp']['calibrated']['rms_mm']:.2f} mm RMS; wrote "
         f"{out}/summary.json, {out}/hand_eye.yaml and {out}/robot.yaml (use it: mmpa --robot "
         f"{out}/robot.yaml ...)",
         highlight=False,
