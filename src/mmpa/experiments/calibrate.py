@@ -10,16 +10,24 @@ Procedure (only NOMINAL knowledge is used to calibrate):
 2. plan ``stations`` views around ``Y0`` (:func:`mmpa.calibration.hand_eye.plan_stations`);
 3. at each: ``arm.move_joints``, read the encoders ``q_i``, capture a frame, detect the board
    and solve PnP (``C_i``); ``G_i = fk(nominal dh, q_i)``;
-4. solve with every method, pick the smallest board-corner spread.
+4. solve with every method, pick the smallest board-corner spread;
+5. from it, the joint MAP fit of the DH corrections, the hand-eye, the board pose and a
+   small arm-base displacement per station over the board corners
+   (:func:`mmpa.calibration.kinematic.calibrate_kinematics_hand_eye`; ``method="joint"``,
+   the default, writes this one, ``"opencv"`` step 4's).
 
-Evaluation (ground truth, never used above): the picked ``X`` against the TRUE robot's
-``T_flange_camera``, each method's error, the PnP error per station against the true board
-pose, and a diagnostic solve with the TRUE flange poses in map (no kinematic or mount
-error: what the camera measurements alone allow).
+Evaluation (ground truth, never used above): the written ``X`` against the TRUE robot's
+``T_flange_camera`` and against its identifiable part ``E6 X_true`` (the last DH link's
+error ``E6`` cannot be told from the hand-eye by any flange-mounted sensor:
+:func:`last_link_error`), each method's error, the PnP error per station against the true
+board pose, the true arm base's motion between stations, and a diagnostic solve with the
+TRUE flange poses in map (no kinematic or mount error: what the camera measurements alone
+allow).
 
-Outputs in ``out``: ``summary.json`` (``error_trans_mm``, ``error_rot_deg``, the method
-table, residuals, stations) and ``hand_eye.yaml`` (the estimate: 4x4 and the robot file's
-``camera.T_flange_camera_vec``).
+Outputs in ``out``: ``summary.json`` (``error_trans_mm``, ``error_rot_deg``,
+``error_identifiable_trans_mm``, ``error_identifiable_rot_deg``, the method table,
+residuals, stations), ``hand_eye.yaml`` (the estimate: 4x4 and the robot file's
+``camera.T_flange_camera_vec``), ``robot.yaml`` and, for ``joint``, ``calibration.conf``.
 
 Also here: ``mmpa calibrate lidar-mount`` (:func:`run_lidar_mount`) and ``mmpa calibrate
 reflectors`` (:func:`run_reflector_survey`: the reflector map surveyed from a drive).

@@ -2,9 +2,12 @@
 
 Detection: beams with intensity above a threshold are grouped into clusters of adjacent beams
 (the scan wraps around at +-pi for a 360 deg lidar); the bearing ``phi`` of the reflector
-CENTER is the cluster's mean beam angle, its range ``r`` the maximum-likelihood distance of a
-circle of the known reflector radius under range noise along each beam (``_fit_radial``;
-unbiased, where a circle fit to the hit points is ~3.5 mm short under 15 mm range noise).
+CENTER is the cluster's mean beam angle (paper 001; ``bearing="mean"``, the default) or the
+centroid of the intensity profile over the cluster and its partly lit neighbours
+(``bearing="intensity"``: sub-beam, :func:`_intensity_bearing`), its range ``r`` the
+maximum-likelihood distance of a circle of the known reflector radius under range noise along
+each beam (``_fit_radial``; unbiased, where a circle fit to the hit points is ~3.5 mm short
+under 15 mm range noise).
 
 Template library ``M`` (§3.1.1, Fig. 1b): every triangle of three landmarks, with side lengths
 ``l1 >= l2 >= l3`` and vertex ids ordered as in §3.1.2 (``l1 = |AB|``, ``l2 = |AC|``,
