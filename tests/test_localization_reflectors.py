@@ -514,3 +514,42 @@ def _static_bearing_errors(world: SimWorld) -> None:
         assert len(ks) >= 6
         rms[how] = float(np.sqrt(np.mean([np.mean(eb[k]) ** 2 for k in ks])))
     assert rms["intensity"] < 0.5 * rms["mean"], rms
+
+
+def test_intensity_bearing_with_bad_neighbours() -> None:
+    """The intensity centroid next to NaN / inf returns, at the edge of a partial scan and
+    with no edge beams: a finite bearing inside the cluster's beams, never a NaN; a closer
+    object beside the reflector does not pull it (the window ends there)."""
+    inc = np.deg2rad(0.25)
+    phi0 = 40.3 * inc
+    base = _spot_scan(4.0, 0.04, phi0, 0.0025)
+    r, inten = base.ranges.copy(), base.intensities.copy()
+    lit = np.flatnonzero(inten > 1000)
+    cfg = DetectionConfig(radius=0.04, bearing="intensity")
+
+    def bearing(rr: np.ndarray, ii: np.ndarray, **kw: object) -> float:
+        scan = LaserScan(0.0, inc * 79, inc, 0.0, 0.1, 0.1, 20.0, rr, ii)
+        det = detect_reflectors(scan, cfg.model_copy(update=kw))
+        assert len(det) == 1 and np.isfinite(det.bearings[0])
+        return float(det.bearings[0])
+
+    clean = bearing(r, inten)
+    assert abs(clean - phi0) < 0.02 * inc
+    for bad in (np.nan, np.inf):
+        ii = inten.copy()
+        ii[lit[0] - 1] = bad
+        rr = r.copy()
+        rr[lit[-1] + 1] = bad
+        b = bearing(rr, ii)
+        assert lit[0] * inc - inc / 2 <= b <= lit[-1] * inc + inc / 2
+    assert abs(bearing(r, inten, edge_beams=0) - phi0) < 0.5 * inc
+    near = r.copy()
+    near[lit[-1] + 1 : lit[-1] + 4] = 2.0  # a person right beside the reflector
+    inten_near = inten.copy()
+    inten_near[lit[-1] + 1 : lit[-1] + 4] = 900.0  # bright clothing, below the threshold
+    assert abs(bearing(near, inten_near) - clean) < 0.15 * inc
+    # the reflector at the first beams of a partial scan
+    shift = lit[0]
+    rr, ii = np.roll(r, -shift), np.roll(inten, -shift)
+    b = bearing(rr, ii)
+    assert 0.0 <= b <= (lit[-1] - shift) * inc + inc / 2
