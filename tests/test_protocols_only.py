@@ -200,3 +200,49 @@ def test_navigation_over_protocols_only() -> None:
     assert res.reached
     assert np.hypot(*(truth[:2] - goal[:2])) < 0.03  # parked at the site (truth, from outside)
     assert np.hypot(*(res.final_estimate[:2] - truth[:2])) < 0.01
+
+
+def test_hand_eye_calibration_over_protocols_only() -> None:
+    """``calibrate_hand_eye_on_robot`` with nothing but the protocol arm and camera, the
+    nominal description, a rough board pose and a wait: realistic seed 1, 12 views. Judged
+    from outside against the truth: the hand-eye on the model's flange (``E6 X_true``, what
+    flange-mounted sensors can determine) within 1 mm / 0.1 deg (measured 0.42 mm, 0.013
+    deg; 12 views identify the depth axis less well than the default 40), far better than
+    the nominal one (2.86 mm, 1.32 deg); the arm settled after every move."""
+    from mmpa.calibration.hand_eye import pose_error
+    from mmpa.calibration.procedure import HandEyeProcedureConfig, calibrate_hand_eye_on_robot
+    from mmpa.experiments.calibrate import last_link_error
+    from mmpa.geometry import inv
+    from mmpa.sim.calibration_board import BoardPlacement, board_world
+    from mmpa.sim.scene import load_scene
+
+    scene = load_scene()
+    cfg = HandEyeProcedureConfig(stations=12)
+    placement = BoardPlacement.for_site(scene, "0")
+    errors = ErrorModelConfig.from_profile("realistic", seed=1)
+    world = board_world("0", cfg.board, placement, errors=errors, scene=scene)
+    try:
+        robot = world.nominal
+        guess = inv(robot.T_base_link_arm_base) @ placement.T_park_geom(cfg.board)
+        guess = guess @ cfg.board.T_geom_board
+        waits: list[float] = []
+
+        def wait(s: float) -> None:  # the user's own settle (here: the twin's clock)
+            waits.append(s)
+            world.step(s)
+
+        arm, camera = OnlyArm(world.arm), OnlyCamera(world.camera)
+        res = calibrate_hand_eye_on_robot(
+            arm, camera, robot, guess, np.asarray(robot.arm.view_bench), cfg, wait=wait
+        )
+        X_true = world.true_robot.camera.T_flange_camera
+        E6 = last_link_error(robot.arm.dh, world.true_robot.arm.dh)
+    finally:
+        world.close()
+    assert res.method == "joint" and len(res.q) == sum(r["used"] for r in res.stations) >= 10
+    assert len(waits) == len(res.stations) + 1 and set(waits) == {cfg.settle_s}
+    et, er = pose_error(res.T_flange_camera, E6 @ X_true)
+    nt, nr = pose_error(robot.camera.T_flange_camera, E6 @ X_true)
+    assert et < 1.0 and er < 0.1, (et, er)
+    assert nt > 2 * et and nr > 5 * er
+    assert res.dh is res.joint.dh and res.joint.rms_px < res.joint.rms_px_start

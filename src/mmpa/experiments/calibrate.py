@@ -1,22 +1,11 @@
-"""``mmpa calibrate hand-eye`` in the twin: a ChArUco board in front of a site, the arm
-visits planned stations, the wrist camera measures the board, ``cv2.calibrateHandEye``
-with every method, the best by residuals; evaluated against the TRUE hand-eye.
+"""``mmpa calibrate hand-eye`` in the twin: a ChArUco board in front of a site, and the
+calibration procedure over the robot interfaces
+(:func:`mmpa.calibration.procedure.calibrate_hand_eye_on_robot`: plan views from where the
+board is meant to stand, visit them with the twin's arm and camera, OpenCV's five methods,
+then the joint DH + hand-eye fit; only NOMINAL knowledge is used); evaluated against the
+TRUE hand-eye.
 
-Procedure (only NOMINAL knowledge is used to calibrate):
-
-1. a first view of the board from where the board is meant to stand (the placement in the
-   site's park frame, the nominal arm mount, nominal IK): detect it and estimate the board
-   pose in the arm base ``Y0 = fk(q) X_nominal C`` (nominal kinematics and hand-eye);
-2. plan ``stations`` views around ``Y0`` (:func:`mmpa.calibration.hand_eye.plan_stations`);
-3. at each: ``arm.move_joints``, read the encoders ``q_i``, capture a frame, detect the board
-   and solve PnP (``C_i``); ``G_i = fk(nominal dh, q_i)``;
-4. solve with every method, pick the smallest board-corner spread;
-5. from it, the joint MAP fit of the DH corrections, the hand-eye, the board pose and a
-   small arm-base displacement per station over the board corners
-   (:func:`mmpa.calibration.kinematic.calibrate_kinematics_hand_eye`; ``method="joint"``,
-   the default, writes this one, ``"opencv"`` step 4's).
-
-Evaluation (ground truth, never used above): the written ``X`` against the TRUE robot's
+Evaluation (ground truth, never used by the procedure): the written ``X`` against the TRUE robot's
 ``T_flange_camera`` and against its identifiable part ``E6 X_true`` (the last DH link's
 error ``E6`` cannot be told from the hand-eye by any flange-mounted sensor:
 :func:`last_link_error`), each method's error, the PnP error per station against the true
@@ -45,28 +34,23 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.calibration.charuco import BoardNotFoundError, board_pose
 from mmpa.calibration.hand_eye import (
-    board_consistency,
     calibrate_hand_eye,
     pair_motion_stats,
-    plan_stations,
     pose_error,
 )
 from mmpa.calibration.kinematic import (
     DH_GROUPS,
-    BoardObservations,
-    JointCalibrationConfig,
-    calibrate_kinematics_hand_eye,
     fk_point_error,
     random_configurations,
 )
+from mmpa.calibration.procedure import HandEyeProcedureConfig, calibrate_hand_eye_on_robot
 from mmpa.calibration.reflector_survey import SurveyConfig
 from mmpa.errors import MMPAError
 from mmpa.geometry import Array, T_to_vec6, inv
 from mmpa.localization.reflectors import DetectionConfig
 from mmpa.robot.description import DHParameters
-from mmpa.sim.calibration_board import BoardPlacement, CharucoBoardSpec, T_map_board_truth
+from mmpa.sim.calibration_board import BoardPlacement, T_map_board_truth
 from mmpa.sim.error_model import ErrorModelConfig, ProfileName
 
 __all__ = [
@@ -82,49 +66,17 @@ __all__ = [
 ]
 
 
-class HandEyeConfig(BaseModel):
-    """The run: ``site``, ``stations`` views, the twin's error ``profile`` and ``seed`` (the
-    robot instance), the board and where it stands, frames averaged per station.
-
-    ``method``: ``joint`` (the arm's DH corrections, the hand-eye and the board pose in one
-    MAP estimate over the board corners, :mod:`mmpa.calibration.kinematic`, started from the
-    best OpenCV solution) or ``opencv`` (``cv2.calibrateHandEye`` with the nominal
-    kinematics, best of five methods); both are solved and reported, ``method`` is the one
-    written out. ``joint``: its priors and noise (:class:`JointCalibrationConfig`; the
-    pixel noise is the stations' pooled PnP reprojection RMS unless given). The view
-    planning grid: camera ``distances`` (m) from the board centre, cone ``tilts_deg`` from
-    its normal, ``rolls_deg`` about the optical axis (:func:`plan_stations`)."""
-
-    model_config = ConfigDict(extra="forbid")
+class HandEyeConfig(HandEyeProcedureConfig):
+    """The twin run: the procedure's settings (:class:`HandEyeProcedureConfig`: views,
+    board, ``method``, the joint fit's priors, the view grid), the ``site`` the board stands
+    at (``placement``; None: :meth:`BoardPlacement.for_site`), the twin's error ``profile``
+    and ``seed`` (the robot instance), and the configurations the calibrated kinematics are
+    evaluated over against the TRUE arm."""
 
     site: str = "0"
-    stations: int = Field(40, ge=3, le=100)
     seed: int = Field(0, ge=0)
     profile: ProfileName = "realistic"
-    board: CharucoBoardSpec = CharucoBoardSpec()
     placement: BoardPlacement | None = None  # None: BoardPlacement.for_site(scene, site)
-    min_corners: int = Field(12, ge=4)
-    settle_s: float = Field(0.5, ge=0)
-    # joint by default: against the identifiable hand-eye E6 X (module docstring of
-    # mmpa.calibration.kinematic) 0.05-0.46 mm on realistic seeds 0-9, OpenCV 0.21-0.95 mm
-    method: Literal["joint", "opencv"] = "joint"
-    # per-station arm-base displacement priors: the platform's mount compliance tilts the
-    # arm base by up to 0.05 deg folded -> full reach (DESIGN.md's figure) and the chassis
-    # rocks on its wheels, about the floor contact 0.4 m below the arm base: an SD of 0.03
-    # deg, and 0.03 deg x 0.4 m = 0.2 mm, rounded up to 0.3 mm, between stations (the twin's
-    # true arm base moves up to 0.5-0.7 mm / 0.03 deg over a calibration, in the summary's
-    # diagnostic; the old 0.05 mm prior was ten times too tight for that)
-    joint: JointCalibrationConfig = JointCalibrationConfig(
-        station_rot_sigma_deg=0.03, station_shift_sigma_mm=0.3
-    )
-    pixel_sigma: float | None = Field(None, gt=0)
-    # four distances from 0.32 to 0.62 m: the views' spread in reach (elbow angle) separates
-    # the camera's depth axis from the upper arm and forearm lengths a2, a3 and the board's
-    # place, which trade with it at one distance (posterior correlation 0.93-0.97 with two
-    # distances, 0.40 / 0.48 m). Tilts to 60 deg and rolls +-90 deg gave outlier views
-    distances: tuple[float, ...] = (0.32, 0.42, 0.52, 0.62)
-    tilts_deg: tuple[float, ...] = (0.0, 15.0, 25.0, 35.0)
-    rolls_deg: tuple[float, ...] = (-40.0, 0.0, 40.0)
     fk_eval_configurations: int = Field(500, ge=1, le=100000)
 
 
@@ -247,109 +199,46 @@ def _run(
     log: Callable[[str], None],
     t0: float,
 ) -> dict[str, Any]:
-    from mmpa.robot.kinematics import fk
-
     nominal = world.nominal
     dh = nominal.arm.dh
     X_nom = nominal.camera.T_flange_camera
     X_true = world.true_robot.camera.T_flange_camera
     q_lim = nominal.arm.q_limits
     spec = cfg.board
-    board = spec.cv_board()
     corners = spec.corners()
-    K = world.camera.intrinsics.K
-    size = (world.camera.intrinsics.width, world.camera.intrinsics.height)
-
-    # 1. first view, planned from where the board is meant to stand (nominal)
+    # where the board is meant to stand (nominal), as a user measures it roughly
     T_armbase_park = inv(nominal.T_base_link_arm_base)
     Y_plan = T_armbase_park @ placement.T_park_geom(spec) @ spec.T_geom_board
-    q_ref = np.asarray(nominal.arm.view_bench, float)
-    first = plan_stations(
-        dh,
-        q_lim,
-        Y_plan,
-        X_nom,
-        corners,
-        K,
-        size,
-        3,
-        q_ref,
-        tilts_deg=(0.0, 10.0),
-        rolls_deg=(0.0,),
-        max_joint_step=2 * np.pi,
-    )[0]
-    world.arm.move_joints(first.q, settle=cfg.settle_s)
-    q0 = world.arm.joint_positions()
-    pose0 = board_pose(world.camera.capture().color, board, K, cfg.min_corners)
-    Y0 = fk(dh, q0) @ X_nom @ pose0.T_camera_board
-    log(f"board found: {pose0.n_corners} corners, {pose0.rms_px:.3f} px RMS")
-
-    # 2. stations around the measured board
-    stations = plan_stations(
-        dh,
-        q_lim,
-        Y0,
-        X_nom,
-        corners,
-        K,
-        size,
-        cfg.stations,
-        q0,
-        distances=cfg.distances,
-        tilts_deg=cfg.tilts_deg,
-        rolls_deg=cfg.rolls_deg,
-    )
-
-    # 3. visit them
-    G, C, G_true_map, G_true_ab, rows, T_ab = [], [], [], [], [], []
-    obs_q, obs_P, obs_u, obs_rms = [], [], [], []
     T_map_board = T_map_board_truth(world, spec)
-    for i, st in enumerate(stations):
-        world.arm.move_joints(st.q, settle=cfg.settle_s)
-        q = world.arm.joint_positions()
-        frame = world.camera.capture()
-        try:
-            pose = board_pose(frame.color, board, K, cfg.min_corners)
-        except BoardNotFoundError as e:
-            log(f"station {i}: skipped ({e})")
-            rows.append({"station": i, "used": False, "reason": str(e)})
-            continue
+    G_true_map, G_true_ab, T_ab = [], [], []
+
+    def truth(i: int, pose: Any) -> dict[str, Any]:
+        """Evaluation only: the view's PnP error against the TRUE board pose, and the true
+        flange and arm base poses (the procedure never sees them)."""
         C_true = inv(world.truth.T_map_camera()) @ T_map_board
         pnp_t, pnp_r = pose_error(pose.T_camera_board, C_true)
-        G.append(fk(dh, q))
-        C.append(pose.T_camera_board)
-        obs_q.append(q)
-        obs_P.append(pose.detection.object_points)
-        obs_u.append(pose.detection.image_points)
-        obs_rms.append(pose.rms_px)
         G_true_map.append(world.truth.T_map_flange())
         T_ab.append(world.truth.T_map_arm_base())
         G_true_ab.append(inv(T_ab[-1]) @ G_true_map[-1])
-        rows.append(
-            {
-                "station": i,
-                "used": True,
-                "tilt_deg": st.tilt_deg,
-                "azimuth_deg": st.azimuth_deg,
-                "roll_deg": st.roll_deg,
-                "distance_m": st.distance,
-                "corners": pose.n_corners,
-                "reproj_rms_px": pose.rms_px,
-                "pnp_error_trans_mm": pnp_t,
-                "pnp_error_rot_deg": pnp_r,
-                "q": [float(v) for v in q],
-            }
-        )
-        log(
-            f"station {i}: {pose.n_corners} corners, {pose.rms_px:.3f} px, PnP error "
-            f"{pnp_t:.2f} mm {pnp_r:.3f} deg"
-        )
-    if len(G) < 3:
-        raise MMPAError(f"only {len(G)} stations saw the board; need at least 3")
-    G, C, G_true_map = np.array(G), np.array(C), np.array(G_true_map)
+        log(f"station {i}: PnP error {pnp_t:.2f} mm {pnp_r:.3f} deg (against the truth)")
+        return {"pnp_error_trans_mm": pnp_t, "pnp_error_rot_deg": pnp_r}
 
-    # 4. solve, compare, pick
-    res = calibrate_hand_eye(G, C, corners)
+    proc = calibrate_hand_eye_on_robot(
+        world.arm,
+        world.camera,
+        nominal,
+        Y_plan,
+        np.asarray(nominal.arm.view_bench, float),
+        cfg,  # a HandEyeProcedureConfig; the twin's fields are not the procedure's business
+        wait=world.step,
+        log=log,
+        on_view=truth,
+    )
+    G, C, G_true_map = proc.G, proc.C, np.array(G_true_map)
+    rows = proc.stations
+    res, joint, pix, joint_s = proc.opencv, proc.joint, proc.pixel_sigma, proc.joint_s
+
+    # every method against the truth (evaluation only)
     table = {}
     for name, r in res.methods.items():
         et, er = pose_error(r.T_flange_camera, X_true)
@@ -364,22 +253,9 @@ def _run(
     true_dh = world.true_robot.arm.dh
     E6 = last_link_error(dh, true_dh)
     by_method: dict[str, Any] = {
-        "opencv": _method_errors(X_cv, X_true, E6) | {"opencv_method": res.best}
+        "opencv": _method_errors(X_cv, X_true, E6) | {"opencv_method": res.best},
+        "joint": _method_errors(joint.T_flange_camera, X_true, E6) | {"solve_s": joint_s},
     }
-    # 5. joint kinematic + hand-eye calibration, from the best OpenCV solution
-    obs = BoardObservations.from_lists(obs_q, obs_P, obs_u)
-    # pixel noise: the pooled PnP reprojection RMS of the stations
-    pix = cfg.pixel_sigma or max(float(np.sqrt(np.mean(np.square(obs_rms)))), 0.05)
-    jcfg = cfg.joint.model_copy(update={"pixel_sigma": pix})
-    t_joint = time.perf_counter()
-    Y_cv = board_consistency(G, C, X_cv, corners).T_base_board
-    joint = calibrate_kinematics_hand_eye(dh, obs, K, X_cv, Y_cv, jcfg)
-    joint_s = time.perf_counter() - t_joint
-    by_method["joint"] = _method_errors(joint.T_flange_camera, X_true, E6) | {"solve_s": joint_s}
-    log(
-        f"joint calibration: {joint.rms_px_start:.3f} -> {joint.rms_px:.3f} px RMS, "
-        f"{joint.n_identified} DH directions identified, {joint_s:.1f} s"
-    )
     # the kinematics against the TRUE arm over random configurations (evaluation only)
     qs = random_configurations(cfg.fk_eval_configurations, cfg.seed, *q_lim)
     X_dh = joint.T_flange_camera
@@ -400,9 +276,7 @@ def _run(
             "calibrated_joint": fk_point_error(joint.dh, true_dh, qs, X_dh, X_true),
         },
     }
-    X = X_dh if cfg.method == "joint" else X_cv
-    method_name = "joint" if cfg.method == "joint" else res.best
-    out_dh = joint.dh if cfg.method == "joint" else dh
+    X, method_name, out_dh = proc.T_flange_camera, proc.method, proc.dh
     err_t, err_r = pose_error(X, X_true)
     nom_t, nom_r = pose_error(X_nom, X_true)
     # diagnostic: the TRUE flange poses in map (no DH, mount or base error)
@@ -419,7 +293,7 @@ def _run(
         "site": cfg.site,
         "profile": world.error_model.config.profile,
         "seed": world.error_model.config.seed,
-        "stations_planned": len(stations),
+        "stations_planned": len(rows),
         "stations_used": len(G),
         "method": method_name,
         "opencv_method": res.best,
@@ -454,7 +328,7 @@ def _run(
             "error_vs_effective_trans_mm": eff_t,
             "error_vs_effective_rot_deg": eff_r,
             # the TRUE arm base's motion between stations (mount compliance, wheel settling)
-            # against its mean pose: what the per-station displacement priors stand for
+            # against the first station's: what the per-station displacement priors stand for
             "arm_base_motion_mm_deg_max": _spread(T_ab),
             "nominal_fk_error_trans_mm_max": float(max(e[0] for e in fk_err)),
             "nominal_fk_error_rot_deg_max": float(max(e[1] for e in fk_err)),
