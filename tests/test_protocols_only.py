@@ -246,3 +246,42 @@ def test_hand_eye_calibration_over_protocols_only() -> None:
     assert et < 1.0 and er < 0.1, (et, er)
     assert nt > 2 * et and nr > 5 * er
     assert res.dh is res.joint.dh and res.joint.rms_px < res.joint.rms_px_start
+
+
+def test_hand_eye_procedure_refuses_bad_input_before_moving() -> None:
+    """A malformed board guess or reference configuration is refused with a clear error,
+    before the arm moves (a recording fake arm: no motion logged)."""
+    from mmpa.calibration.procedure import calibrate_hand_eye_on_robot
+    from mmpa.errors import InvalidInputError
+    from mmpa.robot.description import default_robot
+
+    class NoMotion:  # a fake arm that records what it is asked
+        def __init__(self) -> None:
+            self.moves: list = []
+
+        def joint_positions(self):
+            return np.zeros(6)
+
+        def move_joints(self, q, duration=None):
+            self.moves.append(q)
+
+        def follow(self, times, q_path, record_hz=None):
+            self.moves.append(q_path)
+
+    robot = default_robot()
+    arm = NoMotion()
+    q = np.asarray(robot.arm.view_bench)
+    bad_rot = np.eye(4)
+    bad_rot[:3, :3] *= 2.0
+    nan_pose = np.eye(4)
+    nan_pose[0, 3] = np.nan
+    for guess, qr, match in [
+        (np.eye(3), q, "4x4"),
+        (nan_pose, q, "finite 4x4"),
+        (bad_rot, q, "rotation"),
+        (np.eye(4), q[:5], "6 finite"),
+        (np.eye(4), np.full(6, np.nan), "6 finite"),
+    ]:
+        with pytest.raises(InvalidInputError, match=match):
+            calibrate_hand_eye_on_robot(arm, None, robot, guess, qr)  # type: ignore[arg-type]
+    assert arm.moves == []

@@ -54,7 +54,7 @@ from mmpa.calibration.kinematic import (
     JointCalibrationResult,
     calibrate_kinematics_hand_eye,
 )
-from mmpa.errors import MMPAError
+from mmpa.errors import InvalidInputError, MMPAError
 from mmpa.geometry import Array
 from mmpa.robot.description import DHParameters, RobotDescription
 from mmpa.robot.interfaces import Arm, Camera
@@ -152,11 +152,23 @@ def calibrate_hand_eye_on_robot(
     ``wait(s)`` lets the arm settle after each move (a wall-clock sleep on hardware; the
     twin steps its physics); ``on_view(i, pose)`` is called after each detected view and
     its dict joins the view's row (an evaluation's ground truth; nothing here uses it).
-    Raises :class:`~mmpa.errors.UnreachableError` when the views cannot be planned,
+    Raises :class:`~mmpa.errors.InvalidInputError` on a malformed guess or ``q_ref``,
+    :class:`~mmpa.errors.UnreachableError` when the views cannot be planned,
     :class:`~mmpa.calibration.charuco.BoardNotFoundError` when the first view shows no
     board, and :class:`MMPAError` when fewer than 3 views saw it."""
     cfg = cfg or HandEyeProcedureConfig()
     log = log or (lambda m: None)
+    guess = np.asarray(T_armbase_board_guess, float)
+    if guess.shape != (4, 4) or not np.isfinite(guess).all():
+        raise InvalidInputError(
+            f"the board pose guess must be a finite 4x4 transform, got shape {guess.shape}"
+        )
+    R = guess[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise InvalidInputError("the board pose guess's rotation is not a rotation matrix")
+    q_ref = np.asarray(q_ref, float)
+    if q_ref.shape != (6,) or not np.isfinite(q_ref).all():
+        raise InvalidInputError(f"q_ref must be 6 finite joint angles (rad), got {q_ref!r}")
     dh = robot.arm.dh
     X_nom = robot.camera.T_flange_camera
     q_lim = robot.arm.q_limits
@@ -168,13 +180,13 @@ def calibrate_hand_eye_on_robot(
     first = plan_stations(
         dh,
         q_lim,
-        np.asarray(T_armbase_board_guess, float),
+        guess,
         X_nom,
         corners,
         K,
         size,
         3,
-        np.asarray(q_ref, float),
+        q_ref,
         tilts_deg=(0.0, 10.0),
         rolls_deg=(0.0,),
         max_joint_step=2 * np.pi,
