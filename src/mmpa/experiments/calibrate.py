@@ -32,7 +32,7 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from mmpa.calibration.hand_eye import (
     calibrate_hand_eye,
@@ -46,9 +46,9 @@ from mmpa.calibration.kinematic import (
 )
 from mmpa.calibration.procedure import HandEyeProcedureConfig, calibrate_hand_eye_on_robot
 from mmpa.calibration.reflector_survey import SurveyConfig
+from mmpa.calibration.survey_drive import SurveyDriveConfig
 from mmpa.errors import MMPAError
 from mmpa.geometry import Array, T_to_vec6, inv
-from mmpa.localization.reflectors import DetectionConfig
 from mmpa.robot.description import DHParameters
 from mmpa.sim.calibration_board import BoardPlacement, T_map_board_truth
 from mmpa.sim.error_model import ErrorModelConfig, ProfileName
@@ -441,13 +441,15 @@ def run_lidar_mount(
     return summary
 
 
-class ReflectorSurveyConfig(BaseModel):
+class ReflectorSurveyConfig(SurveyDriveConfig):
     """``mmpa calibrate reflectors``: the robot instance ``seed`` of ``profile`` starts at
     ``site`` and drives the ``route`` (sites, in order), stopping at survey stations every
     ``station_spacing`` m along the planned path (and at each site); at each it stands
     ``scans`` scans, localizing with the laser-only ``method`` (on the occupancy map with
     the reflectors taken out: never the reflectors being surveyed, never the truth) and
-    detecting reflectors in the same scans. ``survey``: the fit
+    detecting reflectors in the same scans (the drive's settings:
+    :class:`~mmpa.calibration.survey_drive.SurveyDriveConfig`; the detector's radius,
+    unless set, is the scene's reflectors'). ``survey``: the fit
     (:class:`~mmpa.calibration.reflector_survey.SurveyConfig`). ``anchor``: ``poses`` keeps
     the surveyed layout where the laser-only pose estimates put it (the occupancy map's
     frame, warped as mapped); ``reflector_map`` moves it rigidly (3 DOF) onto the site's
@@ -459,9 +461,6 @@ class ReflectorSurveyConfig(BaseModel):
     site: str = "0"
     route: tuple[str, ...] = ("1", "2", "0")
     station_spacing: float = Field(1.0, gt=0)  # m along the path; inf: the sites only
-    # per station, localization and detection: a standing robot's scans differ only by the
-    # range noise, 30 take the per-stop mean's noise to ~1 mm (10 left ~1.6 mm, stop 23)
-    scans: int = Field(30, ge=1)
     initial_scans: int = Field(30, ge=1)  # standing scans from the operator's rough pose
     method: str = "hector"  # laser-only localizer: hector | amcl
     map_resolution: float = Field(0.05, gt=0)  # m per cell of the occupancy map localized on
@@ -472,42 +471,9 @@ class ReflectorSurveyConfig(BaseModel):
     # where the surveyed layout is placed: the frame of the laser-only pose estimates, or
     # rigidly onto the site's existing reflector map (its marked positions as control points)
     anchor: Literal["poses", "reflector_map"] = "poses"
-    # refine each stop's pose: its mean scan (reflector beams left out) matched onto the
-    # map's signed distance to the occupied/free boundary (sub-cell; the localizer's own
-    # estimate is the start)
-    map_match: bool = True
-    leg_timeout: float = Field(40.0, gt=0)  # s of simulated time per station
     seed: int = Field(0, ge=0)
     profile: ProfileName = "realistic"
     survey: SurveyConfig = SurveyConfig()
-    # the reflector detector (its radius, unless set, is the scene's reflectors'); the
-    # intensity-centroid bearing (sub-beam) by default: the mean beam angle moves in whole
-    # 0.25 deg steps, up to 8 mm across the ray at 4 m, and a standing robot sees the same
-    # step in every scan, so it does not average out
-    detection: DetectionConfig = DetectionConfig(bearing="intensity")
-
-
-def _survey_stations(cm: Any, start: Array, route: list[Array], spacing: float) -> list[Array]:
-    """Station poses ``[x, y, theta]`` along the planned path from ``start`` through the
-    ``route`` poses: every ``spacing`` m (heading along the path) and each route pose."""
-    from mmpa.navigation.planner import plan_path
-
-    out: list[Array] = []
-    here = np.asarray(start, float)
-    for goal in route:
-        path = plan_path(cm, here[:2], goal[:2])
-        seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
-        s = np.concatenate([[0.0], np.cumsum(seg)])
-        if np.isfinite(spacing) and s[-1] > 1.5 * spacing:
-            n = int(np.floor(s[-1] / spacing))
-            for d in np.linspace(0, s[-1], n + 1)[1:-1]:
-                k = min(int(np.searchsorted(s, d)), len(path) - 1)
-                k0 = max(k - 1, 0)
-                dxy = path[k] - path[k0]
-                out.append(np.array([path[k][0], path[k][1], float(np.arctan2(dxy[1], dxy[0]))]))
-        out.append(np.asarray(goal, float))
-        here = np.asarray(goal, float)
-    return out
 
 
 def run_reflector_survey(
@@ -527,18 +493,15 @@ def run_reflector_survey(
 
     from mmpa.calibration.reflector_survey import (
         SurveyError,
-        SurveyObservations,
         anchor_to,
         laser_origin_heading,
         match_reflectors,
-        match_scan_to_map,
-        signed_distance_map,
         survey_reflectors,
     )
+    from mmpa.calibration.survey_drive import survey_drive, survey_stations
     from mmpa.localization.localizer import make_localizer
     from mmpa.localization.reflector_map import ReflectorMap, save_reflector_map
-    from mmpa.localization.reflectors import detect_reflectors
-    from mmpa.navigation.mission import NavigateConfig, localize_standing, navigate
+    from mmpa.navigation.mission import localize_standing
     from mmpa.navigation.planner import CostMap
     from mmpa.sim.operator import rough_initial_pose
     from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
@@ -552,12 +515,6 @@ def run_reflector_survey(
     t0 = time.perf_counter()
     errors = ErrorModelConfig.from_profile(cfg.profile, seed=cfg.seed)
     scfg = _survey_defaults(cfg, errors)
-    points: list[Array] = []
-    pose_idx: list[int] = []
-    scan_idx: list[int] = []
-    poses: list[Array] = []
-    truths: list[Array] = []
-    n_scan = 0
     with SimWorld(errors=errors, site=cfg.site) as w:
         # the laser-only map: the occupancy grid without its reflector landmarks
         grid = dataclasses.replace(
@@ -565,7 +522,6 @@ def run_reflector_survey(
             reflectors=np.zeros((0, 2)),
         )
         lp = laser_pose2d(w)
-        sdf = signed_distance_map(grid.occupied, grid.resolution) if cfg.map_match else None
         radius = float(w.scene.reflectors.radius)
         det_cfg = cfg.detection
         if "radius" not in det_cfg.model_fields_set:
@@ -576,61 +532,11 @@ def run_reflector_survey(
         cm = CostMap(twin_nav_map(w))
         est0 = loc.pose_at(w.odometry.odometry().pose)
         route = [w.scene.site(s).pose2d for s in cfg.route]
-        stations = _survey_stations(cm, est0, route, cfg.station_spacing)
-        nav = NavigateConfig(timeout=cfg.leg_timeout, initial_scans=0, settle_scans=3)
-        nav = nav.model_copy(update={"max_corrections": 0})
-        for i, goal in enumerate([est0, *stations]):
-            if i > 0:
-                try:
-                    navigate(w, loc, grid, goal, nav, costmap=cm)
-                except MMPAError as e:  # an unplannable station: skip it
-                    log(f"station {i}: skipped ({e})")
-                    continue
-            w.base.stop()
-            found = []
-            ranges = []
-            for _ in range(cfg.scans):
-                w.step(0.1)
-                odom = w.odometry.odometry().pose
-                scan = w.lidar.scan()
-                loc.update(odom, scan, force=True)
-                det = detect_reflectors(scan, det_cfg)
-                det = det.select(~det.cut)
-                found.append(det.points)
-                keep = scan.valid() & (np.asarray(scan.intensities) < det_cfg.intensity_threshold)
-                ranges.append(np.where(keep, scan.ranges, np.nan))
-            est = loc.pose_at(w.odometry.odometry().pose)
-            if cfg.map_match:  # the stop's mean scan (no reflector beams) onto the map
-                rr = np.array(ranges)
-                n_ok = np.isfinite(rr).sum(axis=0)
-                r_mean = np.where(n_ok > 0, np.nansum(rr, axis=0) / np.maximum(n_ok, 1), np.nan)
-                ok = np.isfinite(r_mean)
-                a = scan.angles[ok]
-                pts = r_mean[ok, None] * np.column_stack([np.cos(a), np.sin(a)])
-                t_l, h_l = laser_origin_heading(est, lp)
-                guess = np.array([t_l[0, 0], t_l[0, 1], h_l[0]])
-                try:
-                    v, _, _ = match_scan_to_map(sdf, grid.resolution, grid.origin[:2], pts, guess)
-                    th = v[2] - lp[2]
-                    c, sn = np.cos(th), np.sin(th)
-                    est = np.array(
-                        [v[0] - c * lp[0] + sn * lp[1], v[1] - sn * lp[0] - c * lp[1], th]
-                    )
-                except SurveyError as e:
-                    log(f"station {i}: map match skipped ({e})")
-            truth = w.truth.base_pose2d()  # evaluation only
-            for p in found:
-                points.extend(p)
-                pose_idx.extend([len(poses)] * len(p))
-                scan_idx.extend([n_scan] * len(p))
-                n_scan += 1
-            poses.append(est)
-            truths.append(truth)
-            e = 1e3 * np.hypot(*(est[:2] - truth[:2]))
-            log(
-                f"station {i}: {sum(len(p) for p in found)} detections in {cfg.scans} scans, "
-                f"pose error {e:.1f} mm"
-            )
+        stations = survey_stations(cm, est0, route, cfg.station_spacing)
+        dcfg = cfg.model_copy(update={"detection": det_cfg})
+        drive = survey_drive(
+            w, loc, grid, lp, stations, dcfg, costmap=cm, truth=w.truth.base_pose2d, log=log
+        )
         from mmpa.geometry import T_to_se2
 
         lp_true = T_to_se2(w.true_robot.lidar.T_base_link_laser)
@@ -638,13 +544,9 @@ def run_reflector_survey(
         p_marked = np.asarray(w.map_reflectors, float)
         warp = w.map_warp(p_true)
         profile, seed = w.error_model.config.profile, w.error_model.config.seed
-    obs = SurveyObservations(
-        np.array(points, float).reshape(-1, 2),
-        np.array(pose_idx, dtype=np.int64),
-        np.array(poses, float).reshape(-1, 3),
-        lp,
-        np.array(scan_idx, dtype=np.int64),
-    )
+    obs = drive.observations
+    poses, truths = obs.poses, drive.truths
+    n_scan = drive.scans
     res = survey_reflectors(obs, scfg)
     if not res.ok:
         raise MMPAError(f"reflector survey failed: {res.reason}")
