@@ -287,9 +287,9 @@ def _intensity_bearing(
         else:
             nb = nb[(nb >= 0) & (nb < n)]
         lit = valid[nb] & np.isfinite(inten[nb])
-        bg.extend(inten[nb][lit & (inten[nb] < cfg.intensity_threshold)].tolist())
-        ok = lit & (inten[nb] < cfg.intensity_threshold)
-        ok &= np.abs(np.where(lit, r[nb], np.inf) - r_cl) <= cfg.max_range_jump
+        dim = lit & (inten[nb] < cfg.intensity_threshold)  # lit, below the threshold
+        bg.extend(inten[nb][dim].tolist())
+        ok = dim & (np.abs(np.where(lit, r[nb], np.inf) - r_cl) <= cfg.max_range_jump)
         # the window ends at the first beam that is not a plain neighbour
         stop = np.flatnonzero(~ok)
         side.append(nb[: stop[0]] if stop.size else nb)
