@@ -30,9 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from mmpa.calibration.procedure import HandEyeProcedureConfig, calibrate_hand_eye_on_robot
-from mmpa.geometry import T_to_vec6, exp_se3, inv
+from mmpa.experiments.calibrate import write_robot_file
+from mmpa.geometry import exp_se3
 from mmpa.robot.description import RobotDescription, default_robot
-from mmpa.robot.robot_file import load_robot, save_robot
+from mmpa.robot.robot_file import load_robot
 
 
 def _twin(cfg: HandEyeProcedureConfig, seed: int):
@@ -49,8 +50,8 @@ def _twin(cfg: HandEyeProcedureConfig, seed: int):
     errors = ErrorModelConfig.from_profile("realistic", seed=seed)
     world = board_world("0", cfg.board, placement, errors=errors, scene=scene)
     robot = world.nominal
-    guess = inv(robot.T_base_link_arm_base) @ placement.T_park_geom(cfg.board)
-    return world, world.arm, world.camera, robot, guess @ cfg.board.T_geom_board, world.step
+    guess = placement.T_armbase_board(cfg.board, robot)
+    return world, world.arm, world.camera, robot, guess, world.step
 
 
 def _hardware(host: str, robot: RobotDescription):
@@ -104,13 +105,7 @@ def main(argv: list[str] | None = None) -> dict:
     finally:
         if world is not None:
             world.close()
-    camera_desc = robot.camera.model_copy(
-        update={"T_flange_camera_vec": tuple(float(x) for x in T_to_vec6(res.T_flange_camera))}
-    )
-    arm_desc = robot.arm.model_copy(update={"dh": res.dh})
-    path = save_robot(
-        robot.with_updates(camera=camera_desc.model_dump(), arm=arm_desc.model_dump()), a.out
-    )
+    path = write_robot_file(res.T_flange_camera, a.out, dh=res.dh, robot=robot)
     print(f"hand-eye ({res.method}, {len(res.q)} views): wrote {path} (mmpa --robot {path} ...)")
     out["robot_file"] = path
     return out

@@ -127,7 +127,7 @@ def _joint_synthetic(seed: int, n: int, noise_px: float = 0.2):
     K = np.array([[615.0, 0.0, 320.0], [0.0, 615.0, 240.0], [0.0, 0.0, 1.0]])
     P = SPEC.corners()
     X_nom = robot.camera.T_flange_camera
-    Y = inv(robot.T_base_link_arm_base) @ BoardPlacement().T_park_geom(SPEC) @ SPEC.T_geom_board
+    Y = BoardPlacement().T_armbase_board(SPEC, robot)
     st = plan_stations(
         dh,
         robot.arm.q_limits,
@@ -268,7 +268,7 @@ def world():
 
 def _stations(w, n: int, q_ref=None):
     nominal = w.nominal
-    Y = inv(nominal.T_base_link_arm_base) @ BoardPlacement().T_park_geom(SPEC) @ SPEC.T_geom_board
+    Y = BoardPlacement().T_armbase_board(SPEC, nominal)
     k = w.camera.intrinsics
     return plan_stations(
         nominal.arm.dh,

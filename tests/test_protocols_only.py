@@ -212,7 +212,6 @@ def test_hand_eye_calibration_over_protocols_only() -> None:
     from mmpa.calibration.hand_eye import pose_error
     from mmpa.calibration.procedure import HandEyeProcedureConfig, calibrate_hand_eye_on_robot
     from mmpa.experiments.calibrate import last_link_error
-    from mmpa.geometry import inv
     from mmpa.sim.calibration_board import BoardPlacement, board_world
     from mmpa.sim.scene import load_scene
 
@@ -223,8 +222,7 @@ def test_hand_eye_calibration_over_protocols_only() -> None:
     world = board_world("0", cfg.board, placement, errors=errors, scene=scene)
     try:
         robot = world.nominal
-        guess = inv(robot.T_base_link_arm_base) @ placement.T_park_geom(cfg.board)
-        guess = guess @ cfg.board.T_geom_board
+        guess = placement.T_armbase_board(cfg.board, robot)
         waits: list[float] = []
 
         def wait(s: float) -> None:  # the user's own settle (here: the twin's clock)

@@ -49,7 +49,7 @@ from mmpa.calibration.reflector_survey import SurveyConfig
 from mmpa.calibration.survey_drive import SurveyDriveConfig
 from mmpa.errors import MMPAError
 from mmpa.geometry import Array, T_to_vec6, inv
-from mmpa.robot.description import DHParameters
+from mmpa.robot.description import DHParameters, RobotDescription
 from mmpa.sim.calibration_board import BoardPlacement, T_map_board_truth
 from mmpa.sim.error_model import ErrorModelConfig, ProfileName
 
@@ -207,8 +207,7 @@ def _run(
     spec = cfg.board
     corners = spec.corners()
     # where the board is meant to stand (nominal), as a user measures it roughly
-    T_armbase_park = inv(nominal.T_base_link_arm_base)
-    Y_plan = T_armbase_park @ placement.T_park_geom(spec) @ spec.T_geom_board
+    Y_plan = placement.T_armbase_board(spec, nominal)
     T_map_board = T_map_board_truth(world, spec)
     G_true_map, G_true_ab, T_ab = [], [], []
 
@@ -364,16 +363,19 @@ def _run(
 
 
 def write_robot_file(
-    T_flange_camera: Array, path: str | Path, dh: DHParameters | None = None
+    T_flange_camera: Array,
+    path: str | Path,
+    dh: DHParameters | None = None,
+    robot: RobotDescription | None = None,
 ) -> Path:
-    """The robot in use (``mmpa --robot FILE``, else the twin's) with the calibrated
-    ``camera.T_flange_camera`` and, when given, the calibrated arm kinematics ``dh``,
-    written as a robot file: the next run takes it with ``mmpa --robot PATH``."""
+    """``robot`` (default: the robot in use, ``mmpa --robot FILE``, else the twin's) with the
+    calibrated ``camera.T_flange_camera`` and, when given, the calibrated arm kinematics
+    ``dh``, written as a robot file: the next run takes it with ``mmpa --robot PATH``."""
     from mmpa.geometry import T_to_vec6
     from mmpa.robot.description import default_robot
     from mmpa.robot.robot_file import save_robot
 
-    robot = default_robot()
+    robot = robot or default_robot()
     vec = tuple(float(v) for v in T_to_vec6(T_flange_camera))
     camera = robot.camera.model_copy(update={"T_flange_camera_vec": vec})
     updates: dict[str, Any] = {"camera": camera.model_dump()}

@@ -102,6 +102,12 @@ class BoardPlacement(BaseModel):
         """The board frame (OpenCV's) in map: the TRUE board pose (it is built there)."""
         return self.T_map_geom(site_pose2d, spec) @ spec.T_geom_board
 
+    def T_armbase_board(self, spec: CharucoBoardSpec, robot: RobotDescription) -> Array:
+        """The board frame in ``robot``'s arm base frame where the placement means it to
+        stand, through the NOMINAL arm mount at the exact park pose: the rough guess a user
+        measures (not the truth: the base parks off and the mount is off)."""
+        return inv(robot.T_base_link_arm_base) @ self.T_park_geom(spec) @ spec.T_geom_board
+
 
 def _f(*xs: float) -> str:
     return " ".join(f"{float(x):.12g}" for x in xs)
