@@ -236,8 +236,35 @@ class BagPlayback:
         return self.odometry[i]
 
     def static_transform(self, parent: str, child: str) -> Array | None:
-        """A ``/tf_static`` transform (4x4, ``child`` in ``parent``), None if not recorded."""
-        return self.static_transforms.get((parent, child))
+        """``child`` in ``parent`` (4x4) from ``/tf_static``: one recorded transform, or the
+        chain of recorded transforms (either way round) that links the two frames, as
+        ``tf2`` resolves it (a leading ``/`` of ROS 1 names is ignored); None if the two
+        frames are not linked."""
+        from collections import deque
+
+        edges: dict[str, list[tuple[str, Array]]] = {}
+        for (p, c), Tm in self.static_transforms.items():
+            p, c = p.lstrip("/"), c.lstrip("/")
+            edges.setdefault(p, []).append((c, Tm))
+            edges.setdefault(c, []).append((p, np.linalg.inv(Tm)))
+        start, goal = parent.lstrip("/"), child.lstrip("/")
+        if start not in edges or goal not in edges:
+            return None
+        seen: dict[str, Array] = {start: np.eye(4)}  # frame -> its pose in ``parent``
+        todo = deque([start])
+        while todo:
+            f = todo.popleft()
+            if f == goal:
+                return seen[f]
+            for g, Tm in edges[f]:
+                if g not in seen:
+                    seen[g] = seen[f] @ Tm
+                    todo.append(g)
+        return None
+
+    def static_frames(self) -> list[str]:
+        """The frames named in ``/tf_static`` (sorted; a leading ``/`` dropped)."""
+        return sorted({f.lstrip("/") for pc in self.static_transforms for f in pc})
 
     def truth_at(self, t: float) -> Array | None:
         """The recorded true base pose ``[x, y, theta]`` nearest ``t``; None without truth."""

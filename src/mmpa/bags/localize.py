@@ -13,6 +13,7 @@ trajectory plot ``trajectory.png`` and ``summary.json`` (with the error against
 from __future__ import annotations
 
 import json
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,8 +43,10 @@ class LocalizeConfig(BaseModel):
     seed: int = Field(0, ge=0)  # the localizer's random stream (the twin's demo: errors.seed)
     force: bool = False  # force every filter update (as localize_standing does)
     initial_pose: tuple[float, float, float] | None = None  # None: the bag's /initialpose
-    # [x, y, yaw] of the lidar in base_link; None: the bag's /tf_static, else the nominal robot
+    # [x, y, yaw] of the lidar in base_link; None: the bag's /tf_static (base_frame -> the
+    # scan's frame_id), else robot_laser_pose, else refused (_laser_pose)
     laser_pose: tuple[float, float, float] | None = None
+    robot_laser_pose: tuple[float, float, float] | None = None  # the robot file's mount
     max_scans: int | None = Field(None, ge=1)
     topics: BagTopics = BagTopics()
 
@@ -60,6 +63,8 @@ class LocalizeResult:
     truth: Array | None
     method: str
     seconds: float
+    laser_pose: Array | None = None  # [x, y, yaw] of the lidar in base_link, as used
+    laser_pose_source: str = ""  # "user" | "tf_static" | "robot_file" (_laser_pose)
 
     def errors(self) -> dict[str, float] | None:
         """Position error statistics (mm) and heading error (deg) against the truth."""
@@ -100,15 +105,45 @@ def grid_from_bag(path: str | Path, topics: BagTopics | None = None) -> Occupanc
     return OccupancyGrid(data, res, (float(o.x), float(o.y), 0.0), refl, radius)
 
 
-def _laser_pose(pb: BagPlayback, cfg: LocalizeConfig) -> Array:
+def _laser_pose(pb: BagPlayback, cfg: LocalizeConfig) -> tuple[Array, str]:
+    """The lidar mount ``[x, y, yaw]`` in the base frame and where it came from: ``"user"``
+    (``cfg.laser_pose``, ``--laser-pose``), ``"tf_static"`` (the bag's static transforms from
+    ``topics.base_frame`` to the scans' own ``frame_id``, chained as tf2 does) or
+    ``"robot_file"`` (``cfg.robot_laser_pose``, ``mmpa --robot FILE``). Never the twin's
+    mount: without any of the three, InvalidInputError names the options."""
     if cfg.laser_pose is not None:
-        return np.asarray(cfg.laser_pose, float)
-    T = pb.static_transform(rm.FRAMES["base"], rm.FRAMES["laser"])
+        return np.asarray(cfg.laser_pose, float), "user"
+    base = pb.topics.base_frame
+    frames = sorted({s.frame_id.lstrip("/") for s in pb.scans})
+    if len(frames) > 1:
+        raise InvalidInputError(
+            f"{pb.path}: the scans on {pb.topics.scan} come from several frames {frames}; "
+            "localize one lidar at a time (--scan-topic) and give its mount (--laser-pose)"
+        )
+    laser = frames[0] if frames else ""
+    T = pb.static_transform(base, laser) if laser else None
     if T is not None:
-        return T_to_se2(T)
-    from mmpa.robot.description import default_robot
-
-    return T_to_se2(default_robot().lidar.T_base_link_laser)
+        mount = T_to_se2(T)
+        rob = cfg.robot_laser_pose
+        if rob is not None and np.abs(np.subtract(mount, rob)).max() > 1e-3:
+            logging.getLogger(__name__).warning(
+                "%s: the bag's lidar mount %s (%s -> %s) differs from the robot file's %s; "
+                "using the bag's (--laser-pose to choose)",
+                pb.path,
+                np.round(mount, 4).tolist(),
+                base,
+                laser,
+                list(rob),
+            )
+        return mount, "tf_static"
+    if cfg.robot_laser_pose is not None:
+        return np.asarray(cfg.robot_laser_pose, float), "robot_file"
+    known = ", ".join(pb.static_frames()) or "none"
+    raise InvalidInputError(
+        f"{pb.path}: no lidar mount: {pb.topics.tf_static} has no transform from {base!r} to "
+        f"the scans' frame {laser!r} (static frames: {known}); give it with --laser-pose "
+        "'x,y,yaw' or a robot file (mmpa --robot FILE, lidar.T_base_link_laser_vec)"
+    )
 
 
 def localize_bag(
@@ -121,7 +156,8 @@ def localize_bag(
     pb = playback
     if not pb.scans:
         raise InvalidInputError(f"{pb.path}: no scans on {pb.topics.scan}")
-    loc = make_localizer(cfg.method, grid, _laser_pose(pb, cfg), np.random.default_rng(cfg.seed))
+    mount, mount_source = _laser_pose(pb, cfg)
+    loc = make_localizer(cfg.method, grid, mount, np.random.default_rng(cfg.seed))
     if cfg.initial_pose is not None:
         loc.initialize(np.asarray(cfg.initial_pose, float))
     elif pb.initial_pose is not None:
@@ -154,6 +190,8 @@ def localize_bag(
         truth=np.array(truth) if has_truth else None,
         method=cfg.method,
         seconds=seconds,
+        laser_pose=mount,
+        laser_pose_source=mount_source,
     )
 
 
@@ -251,6 +289,10 @@ def run_localize(
         "scans": len(res.t),
         "odometry_messages": len(pb.odometry),
         "odometry_source": pb.odometry_source,
+        "laser_pose": None
+        if res.laser_pose is None
+        else [round(float(v), 6) for v in res.laser_pose],
+        "laser_pose_source": res.laser_pose_source,
         "duration_s": round(float(res.t[-1] - res.t[0]), 3),
         "compute_s": round(res.seconds, 3),
         "final_estimate": [round(float(v), 6) for v in res.estimate[-1]],

@@ -25,6 +25,18 @@ def _pose3(text: str | None, what: str) -> tuple[float, float, float] | None:
     return vals  # type: ignore[return-value]
 
 
+def _robot_laser_pose(ctx: typer.Context) -> tuple[float, float, float] | None:
+    """The lidar mount ``[x, y, yaw]`` of the robot file given with ``mmpa --robot FILE``;
+    None without one (the twin's mount never stands in for a real robot's)."""
+    if ctx.find_root().params.get("robot") is None:
+        return None
+    from mmpa.geometry import T_to_se2
+    from mmpa.robot.description import default_robot
+
+    x, y, yaw = (float(v) for v in T_to_se2(default_robot().lidar.T_base_link_laser))
+    return x, y, yaw
+
+
 def localize_cmd(
     ctx: typer.Context,
     bag: Annotated[Path, typer.Option("--bag", help="ROS 1 .bag, rosbag2 folder, .mcap or .db3.")],
@@ -52,7 +64,10 @@ def localize_cmd(
     ] = None,
     laser_pose: Annotated[
         str | None,
-        typer.Option(help="Lidar mount 'x,y,yaw' in base_link (default: the bag's /tf_static)."),
+        typer.Option(
+            help="Lidar mount 'x,y,yaw' in base_link (default: the bag's /tf_static from "
+            "base_link to the scans' frame_id, else the robot file's lidar mount)."
+        ),
     ] = None,
     scan_topic: Annotated[str, typer.Option(help="LaserScan topic.")] = "/scan",
     odom_topic: Annotated[str, typer.Option(help="Odometry topic.")] = "/odom",
@@ -73,6 +88,7 @@ def localize_cmd(
             force=force,
             initial_pose=_pose3(initial_pose, "--initial-pose"),
             laser_pose=_pose3(laser_pose, "--laser-pose"),
+            robot_laser_pose=_robot_laser_pose(ctx),
             max_scans=max_scans,
             topics=BagTopics(scan=scan_topic, odom=odom_topic),
         )

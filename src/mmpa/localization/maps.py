@@ -72,6 +72,30 @@ class Box2D:
     radius: float = 0.0
 
 
+def _cells(data: object) -> np.ndarray:
+    """``data`` as int8 cells after checking it: a non-empty 2D array of integers in
+    ``{-1, 0..100}`` (a cast alone would wrap 200 to -56, or truncate 50.7 to 50)."""
+    try:
+        a = np.asarray(data)
+    except (TypeError, ValueError) as e:
+        raise InvalidInputError(f"map data must be a 2D array of cells, got {e}") from None
+    if a.ndim != 2 or a.size == 0:
+        raise InvalidInputError(f"map data must be a non-empty 2D array, got {a.shape}")
+    if a.dtype.kind in "iub":
+        bad = (a < -1) | (a > 100)
+    elif a.dtype.kind == "f":
+        bad = ~np.isfinite(a) | (a < -1) | (a > 100) | (a != np.round(a))
+    else:
+        raise InvalidInputError(f"map data must hold integers -1..100, got dtype {a.dtype}")
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise InvalidInputError(
+            "map cell values must be -1 (unknown) or 0..100 (occupancy %), got "
+            f"{a[r, c].item()!r} at row {r}, column {c} ({int(bad.sum())} bad cell(s))"
+        )
+    return a.astype(np.int8)
+
+
 @dataclass
 class OccupancyGrid:
     """A 2D occupancy grid in ROS layout (row 0 = bottom).
@@ -90,9 +114,7 @@ class OccupancyGrid:
     free_thresh: float = 0.196
 
     def __post_init__(self) -> None:
-        self.data = np.asarray(self.data, dtype=np.int8)
-        if self.data.ndim != 2 or self.data.size == 0:
-            raise InvalidInputError(f"map data must be a non-empty 2D array, got {self.data.shape}")
+        self.data = _cells(self.data)
         if not (np.isfinite(self.resolution) and self.resolution > 0):
             raise InvalidInputError(f"map resolution must be positive, got {self.resolution}")
         if len(self.origin) != 3 or not np.isfinite(np.asarray(self.origin, float)).all():

@@ -1,0 +1,168 @@
+"""Issue 32: nothing silent on a real robot's data. A twin value never stands in for a real one
+(the lidar mount of a bag), input outside its range is refused instead of wrapped (map cells),
+and what was used is recorded (``laser_pose_source``). See docs/silent_defaults.md."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mmpa.backends.bag import BagPlayback
+from mmpa.bags import BagWriter
+from mmpa.bags import messages as rm
+from mmpa.bags.localize import LocalizeConfig, _laser_pose, run_localize
+from mmpa.errors import InvalidInputError
+from mmpa.geometry import make_T
+from mmpa.localization.maps import OccupancyGrid
+from mmpa.robot.interfaces import LaserScan, Odometry
+
+# ----------------------------------------------------------------------- the lidar mount
+
+
+def _scan(stamp: float, frame: str, n: int = 61) -> LaserScan:
+    a0, inc = -math.pi / 2, math.pi / (n - 1)
+    r = np.full(n, 1.2)
+    return LaserScan(
+        a0, a0 + inc * (n - 1), inc, 0.0, 0.1, 0.05, 10.0, r, np.zeros(n), stamp, frame
+    )
+
+
+def _rz(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+#: a rear lidar 0.2 m behind base_link, turned by pi, through an intermediate plate: the
+#: twin's mount (0.3 m ahead, yaw 0) is 0.5 m and pi away from it
+PLATE = make_T(np.eye(3), [-0.15, 0.02, 0.3])
+LASER_ON_PLATE = make_T(_rz(math.pi), [-0.05, 0.0, -0.05])
+REAR = (-0.2, 0.02, math.pi)
+
+
+def _pb(frame: str, static: dict | None = None) -> BagPlayback:
+    pb = BagPlayback(Path("robot.mcap"))
+    pb.scans = [_scan(0.1, frame), _scan(0.2, frame)]
+    pb.static_transforms = static if static is not None else {}
+    return pb
+
+
+def test_the_mount_comes_from_tf_static_by_the_scans_frame_through_a_chain() -> None:
+    static = {("base_link", "plate"): PLATE, ("/plate", "base_laser_link"): LASER_ON_PLATE}
+    pose, source = _laser_pose(_pb("base_laser_link", static), LocalizeConfig())
+    assert source == "tf_static"
+    np.testing.assert_allclose(pose[:2], REAR[:2], atol=1e-12)
+    assert abs(math.remainder(pose[2] - REAR[2], 2 * math.pi)) < 1e-12
+    # recorded the other way round (laser -> base_link): tf2 inverts it, so do we
+    inv = {("base_laser_link", "base_link"): np.linalg.inv(PLATE @ LASER_ON_PLATE)}
+    pose2, _ = _laser_pose(_pb("base_laser_link", inv), LocalizeConfig())
+    np.testing.assert_allclose(pose2[:2], REAR[:2], atol=1e-12)
+
+
+def test_user_mount_wins_and_the_robot_file_is_the_last_resort() -> None:
+    static = {("base_link", "base_laser_link"): PLATE @ LASER_ON_PLATE}
+    cfg = LocalizeConfig(laser_pose=(0.1, 0.0, 0.0), robot_laser_pose=(0.7, 0.0, 0.0))
+    pose, source = _laser_pose(_pb("base_laser_link", static), cfg)
+    assert source == "user" and pose.tolist() == [0.1, 0.0, 0.0]
+    cfg = LocalizeConfig(robot_laser_pose=(0.7, 0.0, 0.0))
+    pose, source = _laser_pose(_pb("base_laser_link", static), cfg)  # the bag's over the file
+    assert source == "tf_static" and pose[0] == pytest.approx(-0.2)
+    pose, source = _laser_pose(_pb("base_laser_link"), cfg)  # no /tf_static: the robot file
+    assert source == "robot_file" and pose.tolist() == [0.7, 0.0, 0.0]
+
+
+def test_no_mount_anywhere_is_refused_naming_the_options() -> None:
+    # the twin's own frame names, but recorded for another frame: not base_link -> laser
+    static = {("base_link", "camera_link"): PLATE}
+    with pytest.raises(InvalidInputError, match=r"'base_laser_link'.*--laser-pose.*--robot"):
+        _laser_pose(_pb("base_laser_link", static), LocalizeConfig())
+    with pytest.raises(InvalidInputError, match="static frames: base_link, camera_link"):
+        _laser_pose(_pb("base_laser_link", static), LocalizeConfig())
+    mixed = _pb("front_laser")
+    mixed.scans.append(_scan(0.3, "rear_laser"))
+    with pytest.raises(InvalidInputError, match="several frames"):
+        _laser_pose(mixed, LocalizeConfig(robot_laser_pose=(0.3, 0.0, 0.0)))
+
+
+def _room() -> OccupancyGrid:
+    data = np.zeros((60, 60), np.int8)
+    data[[0, -1], :] = 100
+    data[:, [0, -1]] = 100
+    return OccupancyGrid(data, 0.05)
+
+
+def _bag(path: Path, static: bool) -> Path:
+    with BagWriter(path) as bag:
+        bag.write("/map", rm.occupancy_grid(_room(), 0.0))
+        if static:
+            tfs = [
+                rm.transform_stamped(0.0, "base_link", "plate", PLATE),
+                rm.transform_stamped(0.0, "plate", "base_laser_link", LASER_ON_PLATE),
+            ]
+            bag.write("/tf_static", rm.tf_message(tfs), 0.0)
+        bag.write("/initialpose", rm.pose_cov_stamped(0.0, "map", [1.5, 1.5, 0.0], None))
+        for t in (0.0, 0.1, 0.2):
+            o = Odometry(np.zeros(3), np.zeros(2), t, "odom", "base_link")
+            bag.write("/odom", rm.odometry(o))
+        for t in (0.05, 0.15):
+            bag.write("/scan", rm.laser_scan(_scan(t, "base_laser_link")))
+    return path
+
+
+def test_the_run_summary_says_which_mount_was_used(tmp_path) -> None:
+    bag = _bag(tmp_path / "rear.mcap", static=True)
+    s = run_localize(bag, tmp_path / "run", cfg=LocalizeConfig(method="amcl"))
+    assert s["laser_pose_source"] == "tf_static"
+    np.testing.assert_allclose(s["laser_pose"][:2], REAR[:2], atol=1e-6)
+    on_disk = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert on_disk["laser_pose_source"] == "tf_static"
+
+
+def test_cli_refuses_a_bag_without_the_mount_in_one_line(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from mmpa.cli.main import app
+
+    bag = _bag(tmp_path / "bare.mcap", static=False)
+    res = CliRunner().invoke(app, ["localize", "--bag", str(bag), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2, res.output
+    assert "Traceback" not in res.output
+    assert "no lidar mount" in res.output and "--laser-pose" in res.output
+    args = ["localize", "--bag", str(bag), "--out", str(tmp_path / "o"), "--method", "amcl"]
+    res = CliRunner().invoke(app, [*args, "--laser-pose", "-0.2,0.02,3.14159"])
+    assert res.exit_code == 0, res.output
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["laser_pose_source"] == "user" and s["laser_pose"] == [-0.2, 0.02, 3.14159]
+
+
+# ------------------------------------------------------------------------- map cells
+
+
+@pytest.mark.parametrize(
+    ("data", "shown"),
+    [
+        (np.full((2, 2), 200), "200"),  # an int8 cast would give -56
+        (np.full((2, 2), 101, np.int8), "101"),
+        (np.array([[0, -2]]), "-2"),
+        (np.array([[0.0, 50.7]]), "50.7"),  # a cast would give 50
+        (np.array([[0.0, np.nan]]), "nan"),
+        (np.array([[np.inf, 0.0]]), "inf"),
+    ],
+)
+def test_map_cells_outside_the_ros_range_are_refused(data, shown) -> None:
+    with pytest.raises(InvalidInputError, match=rf"got {shown}\b"):
+        OccupancyGrid(data, 0.05)
+
+
+def test_map_cells_in_range_are_kept_exactly() -> None:
+    for data in ([[-1, 0, 100]], np.array([[-1.0, 0.0, 100.0]]), np.array([[0, 7, 100]], np.uint8)):
+        g = OccupancyGrid(data, 0.05)
+        assert g.data.dtype == np.int8
+        assert g.data.tolist() == np.asarray(data).astype(int).tolist()
+    with pytest.raises(InvalidInputError, match="got 255"):  # map_server's raw 'unknown'
+        OccupancyGrid(np.array([[255, 0]], np.uint8), 0.05)
+    with pytest.raises(InvalidInputError, match="dtype"):
+        OccupancyGrid([["a", "b"]], 0.05)
