@@ -166,3 +166,95 @@ def test_map_cells_in_range_are_kept_exactly() -> None:
         OccupancyGrid(np.array([[255, 0]], np.uint8), 0.05)
     with pytest.raises(InvalidInputError, match="dtype"):
         OccupancyGrid([["a", "b"]], 0.05)
+
+
+# ------------------------------------------------------------------------- scene seed
+
+
+@pytest.mark.parametrize("seed", [-1, True, 1.5, "7"])
+def test_a_scene_seed_numpy_cannot_take_is_refused_at_load(seed) -> None:
+    from mmpa.errors import ConfigError
+    from mmpa.sim.scene import load_scene, parse_scene
+
+    doc = load_scene().model_dump(mode="json")
+    doc["seed"] = seed
+    with pytest.raises(ConfigError, match=r"(?s)scene.yaml: invalid scene.*\bseed:"):
+        parse_scene(doc, "scene.yaml")
+    doc["seed"] = 2**40  # any non-negative integer is a numpy seed
+    assert parse_scene(doc, "scene.yaml").seed == 2**40
+
+
+def test_snapshot_of_a_negative_seed_scene_is_one_clear_line(tmp_path) -> None:
+    import yaml
+    from typer.testing import CliRunner
+
+    from mmpa.cli.main import app
+    from mmpa.sim.scene import load_scene
+
+    doc = load_scene().model_dump(mode="json")
+    doc["seed"] = -1
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump(doc))
+    args = ["sim", "snapshot", "--set", f"scene={tmp_path / 's.yaml'}", "--out", str(tmp_path)]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2 and "Traceback" not in res.output
+    assert "seed: Input should be greater than or equal to 0" in " ".join(res.output.split())
+    assert not (tmp_path / "summary.json").exists()
+
+
+# ------------------------------------------------------------------------- task store
+
+
+@pytest.fixture
+def store_db(tmp_path: Path) -> Path:
+    from mmpa.tasks import TaskStore
+    from test_tasks import make_task
+
+    p = tmp_path / "t.db"
+    with TaskStore(p) as s:
+        s.save(make_task("valve"))
+        s.save(make_task("cup"))
+    return p
+
+
+@pytest.mark.parametrize(
+    ("sql", "said"),
+    [
+        ("DELETE FROM clouds WHERE task = 'valve'", "row in table 'clouds' is missing"),
+        ("DELETE FROM paths WHERE task = 'valve'", "row in table 'paths' is missing"),
+        (
+            "UPDATE clouds SET ply = substr(ply, 1, length(ply) - 1) WHERE task = 'valve'",
+            "truncated or padded",
+        ),
+        ("UPDATE clouds SET ply = substr(ply, 1, 20) WHERE task = 'valve'", "not a PLY"),
+        ("UPDATE clouds SET ply = 'text' WHERE task = 'valve'", "clouds.ply is not a blob"),
+        (
+            "UPDATE paths SET q = substr(q, 1, length(q) - 48) WHERE task = 'valve'",
+            "paths.q has",
+        ),
+        ("UPDATE paths SET t = 3.5 WHERE task = 'valve'", "paths.t is not a blob"),
+    ],
+)
+def test_tasks_list_refuses_a_task_whose_blobs_are_missing_or_cut(store_db, sql, said) -> None:
+    import sqlite3
+
+    from typer.testing import CliRunner
+
+    from mmpa.cli.main import app
+    from mmpa.errors import CorruptTaskError
+    from mmpa.tasks import TaskStore
+
+    with TaskStore(store_db) as s:
+        assert [i.name for i in s.list()] == ["cup", "valve"]
+    con = sqlite3.connect(store_db)
+    con.execute(sql)
+    con.commit()
+    con.close()
+    with TaskStore(store_db) as s:
+        with pytest.raises(CorruptTaskError, match="task 'valve'"):
+            s.load("valve")  # show refuses it ...
+        with pytest.raises(CorruptTaskError, match=rf"task 'valve' in .*{said}"):
+            s.list()  # ... and so does list, instead of listing it as fine
+        s.load("cup")  # the other task is intact
+    res = CliRunner().invoke(app, ["tasks", "list", "--db", str(store_db)])
+    assert res.exit_code == 2 and "Traceback" not in res.output
+    assert said in " ".join(res.output.split())

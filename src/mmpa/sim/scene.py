@@ -328,7 +328,7 @@ class SceneConfig(_Model):
     """The whole world."""
 
     name: str
-    seed: int = 0  # procedural textures and item colors
+    seed: int = Field(0, ge=0, strict=True)  # procedural textures, item colours (numpy: >= 0)
     floor_size: Vec2 = (30.0, 20.0)
     floor_center: Vec2 = (0.0, 0.0)
     walls: list[Wall]

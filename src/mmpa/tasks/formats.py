@@ -26,6 +26,7 @@ import csv
 import hashlib
 import io
 import json
+from collections.abc import Mapping
 from datetime import datetime
 from typing import Any
 
@@ -38,6 +39,9 @@ from mmpa.tasks.model import Task, ToolPath
 
 __all__ = [
     "PATH_COLUMNS",
+    "check_blob_sizes",
+    "check_path_sizes",
+    "check_ply_size",
     "cloud_to_ply",
     "csv_to_path",
     "header_digest",
@@ -115,8 +119,9 @@ def cloud_to_ply(cloud: PointCloud) -> bytes:
     return header.encode("ascii") + rec.tobytes()
 
 
-def ply_to_cloud(data: bytes, frame: str = "camera", source: str = "cloud.ply") -> PointCloud:
-    """Parse a binary little-endian vertex-only PLY; CorruptTaskError naming ``source``."""
+def _ply_header(data: bytes, source: str) -> tuple[int, np.dtype, int]:
+    """The vertex count, the vertex record dtype and the body offset of a binary
+    little-endian vertex-only PLY (``data``: the file, or its first bytes)."""
     end = data.find(b"end_header\n")
     if not data.startswith(b"ply\n") or end < 0:
         raise CorruptTaskError(f"{source}: not a PLY file (missing 'ply' or 'end_header')")
@@ -155,13 +160,29 @@ def ply_to_cloud(data: bytes, frame: str = "camera", source: str = "cloud.ply") 
         dtype = np.dtype(fields)
     except (TypeError, ValueError) as e:
         raise CorruptTaskError(f"{source}: bad PLY properties: {e}") from None
-    body = data[end + len(b"end_header\n") :]
-    if len(body) != n * dtype.itemsize:
+    return n, dtype, end + len(b"end_header\n")
+
+
+def check_ply_size(head: bytes, size: int, n_points: int, source: str = "cloud.ply") -> None:
+    """Check a stored PLY from its first bytes ``head`` and its ``size`` (bytes) without
+    reading it all: the header promises ``n_points`` vertices and the file holds exactly
+    their bytes (a truncated or padded blob fails); CorruptTaskError naming ``source``."""
+    n, dtype, off = _ply_header(head, source)
+    if n != n_points:
+        raise CorruptTaskError(f"{source}: {n} vertices, the task record says {n_points}")
+    if size - off != n * dtype.itemsize:
         raise CorruptTaskError(
-            f"{source}: vertex data has {len(body)} bytes, the header promises "
+            f"{source}: vertex data has {size - off} bytes, the header promises "
             f"{n} x {dtype.itemsize} = {n * dtype.itemsize} (truncated or padded)"
         )
-    rec = np.frombuffer(body, dtype=dtype, count=n)
+
+
+def ply_to_cloud(data: bytes, frame: str = "camera", source: str = "cloud.ply") -> PointCloud:
+    """Parse a binary little-endian vertex-only PLY; CorruptTaskError naming ``source``."""
+    n, dtype, off = _ply_header(data, source)
+    check_ply_size(data, len(data), n, source)
+    names = list(dtype.names or ())
+    rec = np.frombuffer(data[off:], dtype=dtype, count=n)
     pts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
     colors = None
     rgb = ("red", "green", "blue")
@@ -200,25 +221,35 @@ def path_digest(blobs: dict[str, bytes | None]) -> str:
     return h.hexdigest()
 
 
+_PATH_SHAPES = {"t": (), "q": (6,), "T_arm_base_tool": (4, 4), "gripper": ()}
+
+
+def check_path_sizes(sizes: dict[str, int | None], n: int, source: str = "path") -> None:
+    """Check the byte sizes of the path blobs (None: absent; only ``gripper`` may be) against
+    ``n`` waypoints of float64 arrays; CorruptTaskError naming ``source`` and the array."""
+    for k in _BLOB_NAMES:
+        size = sizes.get(k)
+        if size is None:
+            if k != "gripper":
+                raise CorruptTaskError(f"{source}.{k} is missing")
+            continue
+        want = 8 * n * int(np.prod(_PATH_SHAPES[k]))
+        if size != want:
+            raise CorruptTaskError(
+                f"{source}.{k} has {size} bytes, expected {want} for {n} waypoints"
+            )
+
+
 def path_from_blobs(
     blobs: dict[str, bytes | None], n: int, rate_hz: float, source: str = "path"
 ) -> ToolPath:
     """Inverse of :func:`path_blobs` for ``n`` waypoints; CorruptTaskError on a size mismatch."""
-    shapes = {"t": (n,), "q": (n, 6), "T_arm_base_tool": (n, 4, 4), "gripper": (n,)}
+    check_path_sizes({k: None if v is None else len(v) for k, v in blobs.items()}, n, source)
     arrays: dict[str, np.ndarray | None] = {}
     for k in _BLOB_NAMES:
         v = blobs[k]
-        if v is None:
-            if k != "gripper":
-                raise CorruptTaskError(f"{source}.{k} is missing")
-            arrays[k] = None
-            continue
-        want = 8 * int(np.prod(shapes[k]))
-        if len(v) != want:
-            raise CorruptTaskError(
-                f"{source}.{k} has {len(v)} bytes, expected {want} for {n} waypoints"
-            )
-        arrays[k] = np.frombuffer(v, dtype="<f8").reshape(shapes[k]).astype(np.float64)
+        shape = (n, *_PATH_SHAPES[k])
+        arrays[k] = None if v is None else np.frombuffer(v, "<f8").reshape(shape).astype(float)
     try:
         return ToolPath(
             arrays["t"], arrays["q"], arrays["T_arm_base_tool"], rate_hz, arrays["gripper"]
@@ -350,3 +381,23 @@ def parse_created(value: str, source: str) -> datetime:
         return datetime.fromisoformat(value)
     except (TypeError, ValueError):
         raise CorruptTaskError(f"{source}: 'created' {value!r} is not an ISO 8601 time") from None
+
+
+def check_blob_sizes(row: Mapping[str, Any], n_points: int, n_waypoints: int, where: str) -> None:
+    """Check a task's stored blobs from their SQL types, lengths and the PLY's first bytes
+    (``row``: ``c_task`` / ``p_task`` None when the ``clouds`` / ``paths`` row is missing,
+    ``ply_head``, and ``<blob>_type`` / ``<blob>_len`` of ``ply``, ``t``, ``q``,
+    ``T_arm_base_tool``, ``gripper``): what a task listing can verify without reading the
+    blobs. CorruptTaskError naming ``where``, as a full load would."""
+    if row["c_task"] is None or row["p_task"] is None:
+        missing = "clouds" if row["c_task"] is None else "paths"
+        raise CorruptTaskError(f"{where}: its row in table {missing!r} is missing")
+    if row["ply_type"] != "blob":
+        raise CorruptTaskError(f"{where}: clouds.ply is not a blob")
+    check_ply_size(row["ply_head"], row["ply_len"], n_points, f"{where}: clouds.ply")
+    sizes: dict[str, int | None] = {}
+    for k in _BLOB_NAMES:
+        if row[f"{k}_type"] not in ("blob", "null"):
+            raise CorruptTaskError(f"{where}: paths.{k} is not a blob")
+        sizes[k] = row[f"{k}_len"]
+    check_path_sizes(sizes, n_waypoints, f"{where}: paths")

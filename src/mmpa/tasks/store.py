@@ -46,6 +46,7 @@ from mmpa.errors import (
 )
 from mmpa.tasks.bundle import read_bundle, write_bundle
 from mmpa.tasks.formats import (
+    check_blob_sizes,
     cloud_to_ply,
     header_digest,
     header_record,
@@ -109,6 +110,18 @@ MIGRATIONS: dict[int, tuple[str, ...]] = {
 }
 
 _JSON = {"separators": (",", ":"), "allow_nan": False}
+
+#: every ``tasks`` column, with the types, sizes and first bytes of the task's blobs
+_LIST_SQL = (
+    "SELECT tasks.*, clouds.task AS c_task, substr(clouds.ply, 1, 4096) AS ply_head, "
+    "paths.task AS p_task, "
+    + ", ".join(
+        f"typeof({c}) AS {c.split('.')[1]}_type, length({c}) AS {c.split('.')[1]}_len"
+        for c in ("clouds.ply", "paths.t", "paths.q", "paths.T_arm_base_tool", "paths.gripper")
+    )
+    + " FROM tasks LEFT JOIN clouds ON clouds.task = tasks.name"
+    " LEFT JOIN paths ON paths.task = tasks.name ORDER BY tasks.name"
+)
 
 
 def default_store_path() -> Path:
@@ -566,14 +579,18 @@ class TaskStore:
             raise CorruptTaskError(f"{where}: {e}") from None
 
     def list(self) -> list[TaskInfo]:
-        """A summary of every task, sorted by name. Blobs are not read; each row's types and
-        ``header_sha256`` are verified (CorruptTaskError naming the task and column)."""
+        """A summary of every task, sorted by name. Each row's types and ``header_sha256``
+        are verified, and its blobs are there with the sizes the row promises (their first
+        bytes and lengths only: a missing or truncated cloud or path is CorruptTaskError
+        naming the task, as :meth:`load` would say; checksums are left to :meth:`load`)."""
         with self._guard("cannot list the tasks"):
-            rows = self.con.execute("SELECT * FROM tasks ORDER BY name").fetchall()
+            rows = self.con.execute(_LIST_SQL).fetchall()
         out = []
         for r in rows:
             name = r["name"]
-            rec = self._record(r, f"task {name!r} in {self.path}")
+            where = f"task {name!r} in {self.path}"
+            rec = self._record(r, where)
+            check_blob_sizes(r, rec["n_points"], rec["n_waypoints"], where)
             out.append(
                 TaskInfo(
                     name=rec["name"],
