@@ -145,7 +145,8 @@ def test_amcl_and_enhanced_track_the_truth(world, grid) -> None:
     guess = t0 + np.array([0.15, -0.1, 0.05])
     amcl = make_localizer("amcl", grid, lp, np.random.default_rng(3))
     enh = make_localizer("enhanced", grid, lp, np.random.default_rng(3))
-    assert isinstance(amcl, Localizer) and isinstance(enh, EnhancedAMCL)
+    # make_localizer wraps the filter in a MonitoredLocalizer (health figure); .inner is it
+    assert isinstance(amcl, Localizer) and isinstance(enh.inner, EnhancedAMCL)
     for loc in (amcl, enh):
         loc.initialize(guess)
     _drive(world, [amcl, enh], 0.3, 0.2, 4.0)
@@ -500,7 +501,7 @@ def test_enhanced_learns_surveyed_landmark_errors_in_the_twin(world, grid) -> No
     enh = make_localizer(
         "enhanced", grid, laser_pose2d(world), np.random.default_rng(11), enhanced=cfg
     )
-    assert isinstance(enh, EnhancedAMCL)
+    assert isinstance(enh.inner, EnhancedAMCL)  # make_localizer wraps it
     enh.initialize(world.truth.base_pose2d())
     _drive(world, [enh], 0.2, 0.3, 8.0)
     L_true = world.truth.reflector_positions()

@@ -24,7 +24,7 @@ come from the ``numpy.random.Generator`` given to the filter.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -34,6 +34,7 @@ from scipy.sparse import csgraph
 
 from mmpa.errors import InvalidInputError
 from mmpa.geometry import Array
+from mmpa.localization.health import Health
 from mmpa.localization.maps import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan
 
@@ -93,7 +94,9 @@ class AMCLConfig(BaseModel):
 class PoseEstimate:
     """Filter output: ``pose`` ``[x, y, theta]`` (map), ``cov`` (3, 3), number of particles,
     and whether this call ran a filter update. ``ok`` False (with ``reason``) when the
-    localizer knows this estimate failed (e.g. a scan match that fits nothing)."""
+    localizer knows this estimate failed (e.g. a scan match that fits nothing); ``health``
+    the figures behind that judgement (:mod:`mmpa.localization.health`; default: not judged,
+    as the bare filters return it)."""
 
     pose: Array
     cov: Array
@@ -102,6 +105,7 @@ class PoseEstimate:
     source: str = "amcl"
     ok: bool = True
     reason: str = ""
+    health: Health = field(default_factory=Health)
 
 
 def finite_pose(pose: Array, what: str) -> Array:

@@ -36,8 +36,10 @@ from mmpa.localization.enhanced import (
     ReflectorFix,
     ReflectorObserver,
 )
+from mmpa.localization.health import HealthConfig
 from mmpa.localization.hector import HectorMatcher
 from mmpa.localization.maps import OccupancyGrid
+from mmpa.localization.monitor import MonitoredLocalizer
 from mmpa.robot.interfaces import LaserScan
 
 __all__ = ["METHODS", "TAMCL", "Localizer", "TrilaterationLocalizer", "make_localizer"]
@@ -172,8 +174,25 @@ def make_localizer(
     rng: np.random.Generator | None = None,
     amcl: AMCLConfig | None = None,
     enhanced: EnhancedConfig | None = None,
+    health: HealthConfig | None = None,
+    monitor: bool = True,
 ) -> Localizer:
-    """Build the localizer called ``method`` (one of :data:`METHODS`)."""
+    """Build the localizer called ``method`` (one of :data:`METHODS`); with ``monitor`` (the
+    default) wrapped in a :class:`~mmpa.localization.monitor.MonitoredLocalizer`, so that
+    every estimate carries its health and says ``ok=False`` when lost (``health``: its
+    thresholds)."""
+    loc = _make_bare(method, grid, laser_pose, rng, amcl, enhanced)
+    return MonitoredLocalizer(loc, grid, laser_pose, health) if monitor else loc
+
+
+def _make_bare(
+    method: str,
+    grid: OccupancyGrid,
+    laser_pose: Array,
+    rng: np.random.Generator | None,
+    amcl: AMCLConfig | None,
+    enhanced: EnhancedConfig | None,
+) -> Localizer:
     laser_pose = finite_pose(laser_pose, "laser pose")
     if method == "amcl":
         return AMCL(grid, laser_pose, amcl, rng)

@@ -1,0 +1,253 @@
+"""Localization health: does the estimate still explain what the sensors see?
+
+Pure functions over numpy arrays (no localizer state) and the :class:`Health` record every
+method's :class:`~mmpa.localization.amcl.PoseEstimate` carries
+(:class:`~mmpa.localization.monitor.MonitoredLocalizer` computes it):
+
+- :func:`explained_share`: the share of valid beams whose endpoint, projected from the
+  estimate, lies within ``d_max(r) = explain_dist + r sin(explain_angle)`` of an occupied
+  cell (the map's distance field; off the map counts as unexplained). The range term lets a
+  heading error of ``explain_angle`` pass on long beams. At the right pose this is the
+  share of the scan the map holds (0.8-1 in a mapped building, less behind people and
+  furniture that moved); a scan with ranges in the wrong unit, mirrored angles, or a map of
+  another building explains a small share wherever the filter goes;
+- :func:`position_spread`: ``sqrt`` of the largest eigenvalue of the estimate's position
+  covariance (m), the particle cloud's spread;
+- :func:`odometry_plausible`: an odometry increment between two updates the base cannot have
+  made in the elapsed time (``|dxy| > max_speed dt + slack_xy``, ``|dtheta| > max_turn_rate
+  dt + slack_theta``; without a usable ``dt``: ``|dxy| > max_step``);
+- :func:`scan_defects`: NaN or negative intensities (which silently hide the reflectors
+  from the detector), negative ranges, a majority of NaN ranges.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from mmpa.geometry import Array
+
+__all__ = [
+    "Health",
+    "HealthConfig",
+    "explained_near",
+    "explained_share",
+    "odometry_plausible",
+    "position_spread",
+    "scan_defects",
+]
+
+
+class HealthConfig(BaseModel):
+    """Thresholds of the health figure (units: m, rad, s). Defaults: see the measurements in
+    ``benchmarks/audit_lost.py`` and ``tests/test_localization_health.py``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    #: m, an endpoint this close to an occupied cell center is explained (plus the range term)
+    explain_dist: float = Field(0.15, gt=0)
+    #: rad, heading tolerance: ``d_max`` grows by ``r sin(explain_angle)`` with the range
+    explain_angle: float = Field(np.deg2rad(1.0), ge=0)
+    #: updates in the window the decision looks at (median of the explained shares)
+    window: int = Field(5, ge=1)
+    #: the window median of the explained share below which the localizer says "lost"
+    lost_below: float = Field(0.5, ge=0, le=1)
+    #: ... and above which a lost localizer is trusted again (hysteresis)
+    recover_above: float = Field(0.6, ge=0, le=1)
+    #: fewer valid beams than this: no judgement of the explained share this update
+    min_beams: int = Field(10, ge=1)
+    #: m, particle filters: position spread above this says "lost"
+    spread_max: float = Field(1.5, gt=0)
+    #: m/s and rad/s, the fastest the base can move; m and rad of slack for timing jitter
+    max_speed: float = Field(2.0, gt=0)
+    max_turn_rate: float = Field(4.0, gt=0)
+    slack_xy: float = Field(0.5, ge=0)
+    slack_theta: float = Field(0.8, ge=0)
+    #: m, the largest odometry step between updates when the scans carry no usable stamps
+    max_step: float = Field(5.0, gt=0)
+    #: updates an odometry refusal keeps the estimate flagged
+    odom_hold: int = Field(3, ge=1)
+    #: a scan with more than this share of NaN ranges is inconsistent input
+    max_nan_share: float = Field(0.5, ge=0, le=1)
+    #: m, distance field cap (beyond, all the same: unexplained)
+    max_dist: float = Field(2.0, gt=0)
+    #: m and rad, the explained share is the best over poses this far from the estimate
+    search_xy: float = Field(0.2, ge=0)
+    search_theta: float = Field(np.deg2rad(5.0), ge=0)
+    #: beams judged per scan (evenly subsampled)
+    max_beams: int = Field(180, ge=10)
+    #: alternative readings of the scan tried when its own share is below ``alt_below``:
+    #: mirrored angles, ranges times these factors (a wrong unit)
+    alt_scales: tuple[float, ...] = (0.5, 2.0, 0.1, 10.0, 0.01, 100.0, 0.001, 1000.0)
+    alt_below: float = Field(0.8, ge=0, le=1)
+    #: an alternative reading explaining this much more (window medians) says the input is
+    #: inconsistent
+    alt_margin: float = Field(0.3, ge=0, le=1)
+
+
+@dataclass(frozen=True)
+class Health:
+    """The health figure of one estimate.
+
+    ``explained`` share (0-1) of the valid beams the map explains at the estimate (NaN: too
+    few valid beams to judge); ``window`` the median of ``explained`` over the last
+    ``HealthConfig.window`` updates; ``alternative`` the reading of the scan that explains
+    the map best when that beats the scan as given ("mirrored", "ranges x 0.5", ... or ''),
+    ``alternative_gain`` its window median gain in explained share; ``beams`` the valid
+    beams judged; ``spread_xy`` m the position spread (NaN where the method has no
+    particles); ``odom_ok`` False when this update's odometry increment was implausible
+    (and refused); ``scan_ok`` False when the scan's fields are inconsistent (NaN/negative
+    intensities, ...); ``lost`` the decision after the window and hysteresis."""
+
+    explained: float = float("nan")
+    window: float = float("nan")
+    alternative: str = ""
+    alternative_gain: float = 0.0
+    beams: int = 0
+    spread_xy: float = float("nan")
+    odom_ok: bool = True
+    scan_ok: bool = True
+    lost: bool = False
+
+
+def explained_share(
+    dist: Array,
+    resolution: float,
+    origin: tuple[float, float],
+    pose: Array,
+    ranges: Array,
+    angles: Array,
+    laser_pose: Array | None = None,
+    explain_dist: float = 0.15,
+    explain_angle: float = 0.0,
+) -> tuple[float, int]:
+    """Share of the beams ``(ranges, angles)`` (laser frame, all assumed valid and finite)
+    explained at base pose ``pose`` ``[x, y, theta]``, and their count.
+
+    ``dist`` (H, W) m distance from each cell center to the nearest occupied cell center
+    (:meth:`~mmpa.localization.maps.OccupancyGrid.distance_field`), row 0 at ``origin`` ``(x,
+    y)``, ``resolution`` m/cell. Beam ``b`` ends at ``p_b = o + r_b [cos(theta + theta_l +
+    a_b), sin(...)]`` (``o`` the laser origin, ``theta_l`` the mount yaw) and is explained
+    if it falls in a cell with ``dist <= explain_dist + r_b sin(explain_angle)``; outside the
+    map it is not. No beams: ``(nan, 0)``."""
+    r = np.asarray(ranges, float)
+    a = np.asarray(angles, float)
+    if r.size == 0:
+        return float("nan"), 0
+    lp = np.zeros(3) if laser_pose is None else np.asarray(laser_pose, float)
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    ox, oy = pose[0] + c * lp[0] - s * lp[1], pose[1] + s * lp[0] + c * lp[1]
+    th = a + pose[2] + lp[2]
+    col = np.floor((ox + r * np.cos(th) - origin[0]) / resolution)
+    row = np.floor((oy + r * np.sin(th) - origin[1]) / resolution)
+    h, w = dist.shape
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    d = np.full(r.shape, np.inf)
+    d[inside] = dist[row[inside].astype(np.intp), col[inside].astype(np.intp)]
+    ok = d <= explain_dist + r * np.sin(explain_angle)
+    return float(np.mean(ok)), int(r.size)
+
+
+def explained_near(
+    dist: Array,
+    resolution: float,
+    origin: tuple[float, float],
+    pose: Array,
+    ranges: Array,
+    angles: Array,
+    laser_pose: Array | None = None,
+    explain_dist: float = 0.15,
+    explain_angle: float = 0.0,
+    search_xy: float = 0.0,
+    search_theta: float = 0.0,
+    steps: int = 2,
+) -> tuple[float, Array]:
+    """The best :func:`explained_share` over the poses ``pose + (i, j) search_xy / steps``
+    and ``theta + k search_theta / steps`` for ``i, j, k`` in ``-steps..steps`` (a grid of
+    ``(2 steps + 1)^3`` poses; 0 search: the estimate alone), and the pose that gives it.
+    "Is there a pose near the estimate that explains the scan?": an estimate a little off
+    (0.2 m, a few degrees) is not judged lost, a scan the map cannot explain anywhere near
+    still is. Ties: the pose nearest the estimate."""
+    r = np.asarray(ranges, float)
+    a = np.asarray(angles, float)
+    pose = np.asarray(pose, float)
+    if r.size == 0:
+        return float("nan"), pose.copy()
+    k = np.arange(-steps, steps + 1) / max(steps, 1)
+    gx, gy, gt = np.meshgrid(k * search_xy, k * search_xy, k * search_theta, indexing="ij")
+    offs = np.column_stack([gx.ravel(), gy.ravel(), gt.ravel()])
+    offs = offs[np.argsort(np.hypot(offs[:, 0], offs[:, 1]) + np.abs(offs[:, 2]), kind="stable")]
+    P = pose[None, :] + offs
+    lp = np.zeros(3) if laser_pose is None else np.asarray(laser_pose, float)
+    c, s = np.cos(P[:, 2:3]), np.sin(P[:, 2:3])
+    ox, oy = P[:, 0:1] + c * lp[0] - s * lp[1], P[:, 1:2] + s * lp[0] + c * lp[1]
+    th = a[None, :] + P[:, 2:3] + lp[2]
+    col = np.floor((ox + r * np.cos(th) - origin[0]) / resolution)
+    row = np.floor((oy + r * np.sin(th) - origin[1]) / resolution)
+    h, w = dist.shape
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    d = np.full(col.shape, np.inf)
+    d[inside] = dist[row[inside].astype(np.intp), col[inside].astype(np.intp)]
+    share = np.mean(d <= explain_dist + r[None, :] * np.sin(explain_angle), axis=1)
+    best = int(np.argmax(share))
+    return float(share[best]), P[best].copy()
+
+
+def position_spread(cov: Array) -> float:
+    """``sqrt(lambda_max)`` (m) of the (2, 2) position block of a (3, 3) covariance; NaN if
+    it is not finite."""
+    c = np.asarray(cov, float)[:2, :2]
+    if not np.all(np.isfinite(c)):
+        return float("nan")
+    return float(np.sqrt(max(float(np.linalg.eigvalsh(0.5 * (c + c.T)).max()), 0.0)))
+
+
+def odometry_plausible(delta: Array, dt: float | None, cfg: HealthConfig) -> tuple[bool, str]:
+    """Whether the odometry increment ``delta`` ``[dx, dy, dtheta]`` (m, rad; ``dtheta``
+    wrapped to ``[-pi, pi)``) over ``dt`` s (None or <= 0: unknown) is one the base can make;
+    if not, a sentence saying why."""
+    step = float(np.hypot(delta[0], delta[1]))
+    turn = abs(float(delta[2]))
+    if dt is not None and np.isfinite(dt) and dt > 0:
+        lim = cfg.max_speed * dt + cfg.slack_xy
+        if step > lim:
+            return False, (
+                f"odometry jumped {step:.2f} m in {dt:.2f} s (at most {lim:.2f} m: "
+                f"{cfg.max_speed} m/s)"
+            )
+        lim_a = cfg.max_turn_rate * dt + cfg.slack_theta
+        if turn > lim_a:
+            return False, (
+                f"odometry turned {np.rad2deg(turn):.0f} deg in {dt:.2f} s (at most "
+                f"{np.rad2deg(lim_a):.0f} deg: {cfg.max_turn_rate} rad/s)"
+            )
+        return True, ""
+    if step > cfg.max_step:
+        return False, f"odometry jumped {step:.2f} m between updates (max_step {cfg.max_step} m)"
+    return True, ""
+
+
+def scan_defects(ranges: Array, intensities: Array, max_nan_share: float = 0.5) -> str:
+    """What is wrong with a scan's values ('' if nothing): NaN or negative intensities (the
+    reflector detector then sees no reflector), negative finite ranges, more than
+    ``max_nan_share`` of the ranges NaN (REP 117 allows some NaN: 'no measurement')."""
+    r = np.asarray(ranges, float)
+    i = np.asarray(intensities, float)
+    out = []
+    n_nan_i = int(np.count_nonzero(np.isnan(i)))
+    n_neg_i = int(np.count_nonzero(i < 0))
+    if n_nan_i:
+        out.append(f"{n_nan_i} NaN intensities")
+    if n_neg_i:
+        out.append(f"{n_neg_i} negative intensities")
+    if n_nan_i or n_neg_i:
+        out[-1] += " (reflectors on those beams go undetected)"
+    n_neg_r = int(np.count_nonzero(np.isfinite(r) & (r < 0)))
+    if n_neg_r:
+        out.append(f"{n_neg_r} negative ranges")
+    n_nan_r = int(np.count_nonzero(np.isnan(r)))
+    if r.size and n_nan_r > max_nan_share * r.size:
+        out.append(f"{n_nan_r} of {r.size} ranges NaN")
+    return "; ".join(out)

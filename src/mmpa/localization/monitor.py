@@ -1,0 +1,260 @@
+"""A localizer that knows when it is lost: :class:`MonitoredLocalizer` wraps any
+:class:`~mmpa.localization.localizer.Localizer` and fills every estimate's
+:class:`~mmpa.localization.health.Health`, ``ok`` and ``reason``.
+
+Per :meth:`MonitoredLocalizer.update`:
+
+1. the odometry increment since the last call is checked
+   (:func:`~mmpa.localization.health.odometry_plausible`, ``dt`` from the scan stamps); an
+   implausible one is REFUSED: the wrapped localizer sees odometry shifted so that this
+   increment is zero motion (SE(2) correction ``F``: it gets ``F * odom``), and the estimate
+   says ``ok=False``, "inconsistent input: odometry jumped ..." for ``odom_hold`` updates;
+2. the scan's values are checked (:func:`~mmpa.localization.health.scan_defects`): NaN or
+   negative intensities say "inconsistent input" at once (for the reflector methods also
+   that the fix fell back to plain AMCL);
+3. the wrapped localizer updates; the share of beams the map explains is computed at its
+   pose (``pose_at``: the estimate carried by odometry) and appended to a window of the last
+   ``window`` updates; with a full window, a median below ``lost_below`` says "lost" until
+   the median rises above ``recover_above`` (hysteresis: one scan blocked by people does not
+   raise the alarm, a wrong unit, mirrored angles or another building's map do within
+   ``window / 2 + 1`` updates); a particle spread above ``spread_max`` says "lost" too.
+
+Any ``ok=False``/``reason`` of the wrapped localizer (Hector's rejected matches) is kept.
+Attributes the wrapper does not define are the wrapped localizer's (``loc.particles``,
+``loc.observer``, ...).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from mmpa.geometry import Array
+from mmpa.localization.amcl import PoseEstimate, check_scan, finite_pose
+from mmpa.localization.health import (
+    Health,
+    HealthConfig,
+    explained_near,
+    odometry_plausible,
+    position_spread,
+    scan_defects,
+)
+from mmpa.localization.maps import OccupancyGrid
+from mmpa.robot.interfaces import LaserScan
+
+__all__ = ["MonitoredLocalizer", "se2_compose", "se2_inverse"]
+
+
+def se2_compose(a: Array, b: Array) -> Array:
+    """``a * b`` for SE(2) poses ``[x, y, theta]``."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    th = (a[2] + b[2] + np.pi) % (2 * np.pi) - np.pi
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], th])
+
+
+def se2_inverse(a: Array) -> Array:
+    """``inv(a)`` for an SE(2) pose ``[x, y, theta]``."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([-c * a[0] - s * a[1], s * a[0] - c * a[1], -a[2]])
+
+
+class MonitoredLocalizer:
+    """``inner`` with a health figure on every estimate (see the module docstring).
+    ``grid`` the map ``inner`` localizes in, ``laser_pose`` the lidar mount ``[x, y, yaw]``
+    in ``base_link``."""
+
+    def __init__(
+        self,
+        inner: Any,
+        grid: OccupancyGrid,
+        laser_pose: Array,
+        cfg: HealthConfig | None = None,
+    ) -> None:
+        self.inner = inner
+        self.health_cfg = cfg or HealthConfig()
+        self.laser_pose = finite_pose(laser_pose, "laser pose")
+        self._dist = grid.distance_field(self.health_cfg.max_dist)
+        self._res = float(grid.resolution)
+        self._origin = (float(grid.origin[0]), float(grid.origin[1]))
+        self._reset()
+
+    def _reset(self) -> None:
+        self._shares: deque[float] = deque(maxlen=self.health_cfg.window)
+        self._alts: deque[tuple[str, float]] = deque(maxlen=self.health_cfg.window)
+        self._lost = False
+        self._fix = np.zeros(3)  # SE(2) correction applied to the raw odometry
+        self._raw_prev: Array | None = None
+        self._stamp_prev: float | None = None
+        self._odom_flag = 0
+        self._odom_reason = ""
+        self.refused_odometry = 0  # implausible odometry increments refused so far
+        self.last_health = Health()
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "inner":  # not yet set (copy, pickling): no recursion
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+    @property
+    def name(self) -> str:
+        return str(self.inner.name)
+
+    def initialize(self, pose: Array, cov: Array | None = None) -> None:
+        """The wrapped localizer's ``initialize``; the health window starts afresh."""
+        self.inner.initialize(pose, cov)
+        self._reset()
+
+    def _odometry(self, raw: Array) -> Array:
+        """``F * raw``: the odometry the wrapped localizer sees."""
+        return se2_compose(self._fix, raw)
+
+    def pose_at(self, odom_pose: Array) -> Array:
+        return self.inner.pose_at(self._odometry(finite_pose(odom_pose, "odometry pose")))
+
+    def estimate(self) -> PoseEstimate:
+        """The wrapped localizer's estimate with the last health figure."""
+        est = self.inner.estimate()
+        return dataclasses.replace(est, health=self.last_health)
+
+    def _check_odometry(self, raw: Array, stamp: float) -> None:
+        """Refuse an implausible increment from the last call's odometry (see module)."""
+        if self._raw_prev is not None:
+            delta = se2_compose(se2_inverse(self._raw_prev), raw)
+            dt = None
+            if self._stamp_prev is not None and stamp > 0 and self._stamp_prev > 0:
+                dt = stamp - self._stamp_prev
+            ok, why = odometry_plausible(delta, dt, self.health_cfg)
+            if not ok:
+                # F_new * raw = F_old * raw_prev: the increment becomes zero motion
+                held = se2_compose(self._fix, self._raw_prev)
+                self._fix = se2_compose(held, se2_inverse(raw))
+                self._odom_flag = self.health_cfg.odom_hold
+                self._odom_reason = f"{why}; refused (taken as no motion)"
+                self.refused_odometry += 1
+        self._raw_prev = raw.copy()
+        self._stamp_prev = float(stamp)
+
+    def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
+        """The wrapped localizer's update with the health figure, ``ok`` and ``reason``."""
+        raw = finite_pose(odom_pose, "odometry pose")
+        scan = check_scan(scan)
+        self._check_odometry(raw, float(scan.stamp) if np.isfinite(scan.stamp) else 0.0)
+        odom = self._odometry(raw)
+        est = self.inner.update(odom, scan, force)
+        pose = np.asarray(self.inner.pose_at(odom), float)
+        health, reasons = self._judge(est, pose, scan)
+        if not est.ok and est.reason:
+            reasons.append(est.reason)
+        self.last_health = health
+        return dataclasses.replace(
+            est, ok=est.ok and not reasons, reason="; ".join(reasons), health=health
+        )
+
+    def _share(self, pose: Array, ranges: Array, angles: Array) -> float:
+        c = self.health_cfg
+        share, _ = explained_near(
+            self._dist,
+            self._res,
+            self._origin,
+            pose,
+            ranges,
+            angles,
+            self.laser_pose,
+            c.explain_dist,
+            c.explain_angle,
+            c.search_xy,
+            c.search_theta,
+        )
+        return share
+
+    def _explained(self, pose: Array, scan: LaserScan) -> tuple[float, int, str, float]:
+        """This scan's explained share near ``pose``, its beam count, and the best
+        alternative reading (mirrored angles, scaled ranges) with its share ('' and NaN if
+        the scan's own share is at least ``alt_below``)."""
+        c = self.health_cfg
+        m = np.flatnonzero(scan.valid() & (scan.ranges > 0))
+        if m.size > c.max_beams:
+            m = m[np.linspace(0, m.size - 1, c.max_beams).astype(int)]
+        if m.size < c.min_beams or not np.all(np.isfinite(pose)):
+            return float("nan"), int(m.size), "", float("nan")
+        r, a = scan.ranges[m], scan.angles[m]
+        share = self._share(pose, r, a)
+        if share >= c.alt_below:
+            return share, int(m.size), "", float("nan")
+        alts = {"mirrored angles": (r, scan.angle_min + scan.angle_max - a)}
+        for f in c.alt_scales:
+            alts[f"ranges x {f:g}"] = (r * f, a)
+        best, best_share = "", -1.0
+        for name, (ra, aa) in alts.items():
+            ok = np.isfinite(ra) & (ra <= scan.range_max)
+            sh = self._share(pose, ra[ok], aa[ok]) * ok.mean() if ok.any() else 0.0
+            if sh > best_share:
+                best, best_share = name, sh
+        return share, int(m.size), best, best_share
+
+    def _window(self, share: float, alt: str, alt_share: float) -> tuple[float, str, float]:
+        """Append to the window; its median share, and the alternative reading with its
+        median gain (0 for updates where none was tried or another one won)."""
+        c = self.health_cfg
+        if np.isfinite(share):
+            self._shares.append(share)
+            self._alts.append((alt, alt_share - share if alt else 0.0))
+        window = float(np.median(self._shares)) if self._shares else float("nan")
+        names = [n for n, _ in self._alts if n]
+        if not names:
+            return window, "", 0.0
+        top = max(set(names), key=names.count)
+        gain = float(np.median([g if n == top else 0.0 for n, g in self._alts]))
+        if len(self._shares) == c.window:
+            if not self._lost and window < c.lost_below:
+                self._lost = True
+            elif self._lost and window > c.recover_above:
+                self._lost = False
+        return window, top, gain
+
+    def _judge(self, est: PoseEstimate, pose: Array, scan: LaserScan) -> tuple[Health, list[str]]:
+        """The health at ``pose`` after this update and the reasons to say ``ok=False``."""
+        c = self.health_cfg
+        reasons: list[str] = []
+        odom_ok = self._odom_flag == 0
+        if self._odom_flag > 0:
+            reasons.append(f"inconsistent input: {self._odom_reason}")
+            self._odom_flag -= 1
+        defects = scan_defects(scan.ranges, scan.intensities, c.max_nan_share)
+        if defects:
+            msg = f"inconsistent input: scan has {defects}"
+            if est.source == "amcl" and hasattr(self.inner, "observer"):
+                msg += "; no reflector fix: fell back to plain AMCL"
+            reasons.append(msg)
+        share, n, alt, alt_share = self._explained(pose, scan)
+        window, alt, gain = self._window(share, alt, alt_share)
+        full = len(self._shares) == c.window
+        if full and gain > c.alt_margin and window < c.alt_below:
+            reasons.append(
+                f"inconsistent input: the scan fits the map far better with {alt} "
+                f"({window + gain:.0%} vs {window:.0%} of beams explained; wrong angle "
+                "metadata or range unit?)"
+            )
+        if self._lost:
+            reasons.append(
+                f"lost: only {window:.0%} of beams explained by the map (median of the last "
+                f"{len(self._shares)} updates; lost below {c.lost_below:.0%})"
+            )
+        spread = position_spread(est.cov) if est.n_particles > 0 else float("nan")
+        if spread > c.spread_max:
+            reasons.append(f"lost: particle spread {spread:.2f} m > {c.spread_max} m")
+        health = Health(
+            explained=share,
+            window=window,
+            alternative=alt if gain > 0 else "",
+            alternative_gain=gain,
+            beams=n,
+            spread_xy=spread,
+            odom_ok=odom_ok,
+            scan_ok=not defects,
+            lost=self._lost or spread > c.spread_max,
+        )
+        return health, reasons
