@@ -1739,6 +1739,315 @@ def cli_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
     return cases
 
 
+# ============================================================================ 13. real data
+
+
+def _rd_bag(path: Path, static: list[tuple[str, str, np.ndarray]], frames: list[str]) -> Path:
+    """A small bag as a real robot records it: /map, /initialpose, /odom, one scan per frame
+    in ``frames``, and ``static`` transforms (parent, child, 4x4) on /tf_static."""
+    from mmpa.bags import BagWriter
+    from mmpa.bags import messages as rm
+    from mmpa.localization.maps import OccupancyGrid
+    from mmpa.robot.interfaces import LaserScan, Odometry
+
+    data = np.zeros((60, 60), np.int8)
+    data[[0, -1], :] = data[:, [0, -1]] = 100
+    n, a0 = 61, -np.pi / 2
+    inc = np.pi / (n - 1)
+    with BagWriter(path) as bag:
+        bag.write("/map", rm.occupancy_grid(OccupancyGrid(data, 0.05), 0.0))
+        if static:
+            tfs = [rm.transform_stamped(0.0, a, b, T) for a, b, T in static]
+            bag.write("/tf_static", rm.tf_message(tfs), 0.0)
+        bag.write("/initialpose", rm.pose_cov_stamped(0.0, "map", [1.5, 1.5, 0.0], None))
+        for t in (0.0, 0.1, 0.2, 0.3):
+            bag.write(
+                "/odom", rm.odometry(Odometry(np.zeros(3), np.zeros(2), t, "odom", "base_link"))
+            )
+        for i, f in enumerate(frames):
+            sc = LaserScan(
+                a0,
+                a0 + inc * (n - 1),
+                inc,
+                0.0,
+                0.1,
+                0.05,
+                10.0,
+                np.full(n, 1.2),
+                np.zeros(n),
+                0.05 + 0.1 * i,
+                f,
+            )
+            bag.write("/scan", rm.laser_scan(sc))
+    return path
+
+
+class _FakeArm:
+    """An ``Arm`` that records its calls (TMMA cases: did anything move?)."""
+
+    def __init__(self, q: np.ndarray) -> None:
+        self.q, self.calls = np.asarray(q, float).copy(), []
+
+    def joint_positions(self) -> np.ndarray:
+        return self.q.copy()
+
+    def move_joints(self, q: Any, duration: float | None = None) -> None:
+        self.calls.append("move_joints")
+        self.q = np.asarray(q, float).copy()
+
+    def follow(self, t: Any, q: Any, record_hz: float | None = None) -> None:
+        self.calls.append("follow")
+        self.q = np.asarray(q, float)[-1].copy()
+
+
+def real_data_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
+    """Issue 32: a twin value standing in for a real one, values wrapped by a cast, a damaged
+    task listed as fine, a TMMA replay of joints that are not the taught tool path, a path
+    slowed down without a word (docs/silent_defaults.md)."""
+    import logging
+
+    from typer.testing import CliRunner
+
+    from mmpa.bags import messages as rm
+    from mmpa.bags.localize import LocalizeConfig, run_localize
+    from mmpa.cli.main import app
+    from mmpa.geometry import make_T
+    from mmpa.localization.maps import OccupancyGrid
+    from mmpa.missions.mmpa import replay_tmma
+    from mmpa.robot.description import CameraIntrinsics, RobotDescription
+    from mmpa.robot.interfaces import PointCloud
+    from mmpa.robot.kinematics import fk
+    from mmpa.sim.scene import load_scene, parse_scene
+    from mmpa.tasks import Task, TaskStore, ToolPath
+
+    d = tmp / "real"
+    d.mkdir()
+    runner = CliRunner()
+    cases: list[Case] = []
+    rear = make_T(np.diag([-1.0, -1.0, 1.0]), [-0.2, 0.02, 0.3])  # 0.5 m, pi from the twin's
+    # ---- the lidar mount
+    bags = {
+        "no /tf_static": ([], ["laser"]),
+        "/tf_static for another frame (base_link -> camera_link)": (
+            [("base_link", "camera_link", rear)],
+            ["base_laser_link"],
+        ),
+        "/tf_static base_link -> laser, scans in base_laser_link": (
+            [("base_link", "laser", rear)],
+            ["base_laser_link"],
+        ),
+        "scans from two frames": (
+            [("base_link", "front", rear), ("base_link", "rear", rear)],
+            ["front", "rear"],
+        ),
+        "a scan without frame_id": ([("base_link", "laser", rear)], [""]),
+    }
+    for i, (label, (static, frames)) in enumerate(bags.items()):
+        b = _rd_bag(d / f"b{i}.mcap", static, frames)
+        out = d / f"loc{i}"
+        cases.append(
+            Case(
+                "real data",
+                f"localize: {label}",
+                lambda b=b, out=out: run_localize(b, out, cfg=LocalizeConfig(method="amcl")),
+            )
+        )
+    for label, static in {
+        "mount only under base_laser_link (a chain via a plate)": [
+            ("base_link", "plate", make_T(np.eye(3), [-0.15, 0.02, 0.3])),
+            ("plate", "base_laser_link", make_T(np.diag([-1.0, -1.0, 1.0]), [-0.05, 0, 0])),
+        ],
+        "mount recorded laser -> base_link (inverse)": [
+            ("/base_laser_link", "/base_link", np.linalg.inv(rear))
+        ],
+    }.items():
+        b = _rd_bag(d / f"b{len(cases)}.mcap", static, ["base_laser_link"])
+        out = d / f"loc{len(cases)}"
+
+        def check(s: Any) -> None:
+            got = np.asarray(s["laser_pose"])
+            if s.get("laser_pose_source") != "tf_static" or not np.allclose(got[:2], [-0.2, 0.02]):
+                raise SilentWrong(f"mount {got.tolist()} from {s.get('laser_pose_source')!r}")
+            raise Handled(f"the bag's mount {got.round(4).tolist()}, laser_pose_source tf_static")
+
+        cases.append(
+            Case(
+                "real data",
+                f"localize: {label}",
+                lambda b=b, out=out: run_localize(b, out, cfg=LocalizeConfig(method="amcl")),
+                check,
+            )
+        )
+    b = _rd_bag(d / "cli.mcap", [], ["base_laser_link"])
+    cases.append(
+        Case(
+            "real data",
+            "mmpa localize --bag (no mount anywhere)",
+            lambda: runner.invoke(app, ["localize", "--bag", str(b), "--out", str(d / "c")]),
+            cli=True,
+        )
+    )
+    # ---- map cells
+    for label, data in {
+        "200 (int64)": np.full((2, 2), 200),
+        "101 (int8)": np.full((2, 2), 101, np.int8),
+        "-2": np.array([[0, -2]]),
+        "50.7": np.array([[0.0, 50.7]]),
+        "NaN": np.array([[np.nan]]),
+        "inf": np.array([[np.inf]]),
+        "255 (uint8, raw unknown)": np.array([[255]], np.uint8),
+        "-128 (int8)": np.array([[-128]], np.int8),
+        "strings": np.array([["a"]]),
+        "random int16 beyond 100": rng.integers(101, 30000, (3, 3)).astype(np.int16),
+    }.items():
+        cases.append(
+            Case(
+                "real data",
+                f"OccupancyGrid cells {label}",
+                lambda data=data: OccupancyGrid(data, 0.05).data,
+            )
+        )
+    # ---- scene seed
+    doc = load_scene().model_dump(mode="json")
+    for v in (-1, -(2**40), True, 1.5, "7", None):
+        bad = {**doc, "seed": v}
+        cases.append(
+            Case("real data", f"scene seed {v!r}", lambda bad=bad: parse_scene(bad, "s.yaml"))
+        )
+    neg = _write(d / "neg_seed.yaml", {**doc, "seed": -1})
+    cases.append(
+        Case(
+            "real data",
+            "mmpa sim snapshot --set scene=<seed -1>",
+            lambda: runner.invoke(
+                app, ["sim", "snapshot", "--set", f"scene={neg}", "--out", str(d / "snap")]
+            ),
+            cli=True,
+        )
+    )
+    # ---- the task store: a damaged task in the listing
+    sys.path.insert(0, str(REPO / "tests"))
+    from test_tasks import make_task
+
+    master = d / "master.db"
+    with TaskStore(master) as st:
+        st.save(make_task("valve", 0, n_points=200, n_waypoints=15))
+        st.save(make_task("cup", 1, n_points=200, n_waypoints=15))
+    for sql in (
+        "DELETE FROM clouds WHERE task = 'valve'",
+        "DELETE FROM paths WHERE task = 'valve'",
+        "UPDATE clouds SET ply = substr(ply, 1, length(ply) - 1) WHERE task = 'valve'",
+        "UPDATE clouds SET ply = substr(ply, 1, length(ply) / 2) WHERE task = 'valve'",
+        "UPDATE clouds SET ply = CAST(ply || x'00' AS BLOB) WHERE task = 'valve'",
+        "UPDATE clouds SET ply = ply || x'00' WHERE task = 'valve'",  # || gives text
+        "UPDATE clouds SET ply = CAST(ply AS TEXT) WHERE task = 'valve'",
+        "UPDATE paths SET q = substr(q, 1, length(q) - 48) WHERE task = 'valve'",
+        "UPDATE paths SET gripper = x'00' WHERE task = 'valve'",
+        "UPDATE paths SET T_arm_base_tool = 1 WHERE task = 'valve'",
+    ):
+        db = d / f"t{len(cases)}.db"
+        shutil.copy(master, db)
+        con = sqlite3.connect(db)
+        con.execute(sql)
+        con.commit()
+        con.close()
+        cases.append(
+            Case("real data", f"tasks list after: {sql}", lambda db=db: TaskStore(db).list())
+        )
+        cases.append(
+            Case(
+                "real data",
+                f"mmpa tasks list after: {sql}",
+                lambda db=db: runner.invoke(app, ["tasks", "list", "--db", str(db)]),
+                cli=True,
+            )
+        )
+    # ---- TMMA: joints vs tool path, and slowing down
+    rob = RobotDescription()
+    tcp = rob.gripper.T_flange_tcp
+    home = np.array(rob.arm.home)
+    q = np.tile(home, (20, 1))
+    q[10:, 0] += 1.5
+
+    def task(qq: np.ndarray, T: np.ndarray) -> Task:
+        cloud = PointCloud(np.zeros((10, 3)), None)
+        return Task(
+            "t",
+            "0",
+            np.eye(4),
+            qq[0],
+            np.eye(4),
+            cloud,
+            ToolPath(np.arange(len(qq)) * 0.02, qq, T, 50.0),
+        )
+
+    def tmma(tk: Task, tool: np.ndarray) -> Any:
+        arm = _FakeArm(tk.path.q[0])
+        try:
+            return replay_tmma(tk, arm=arm, gripper=None, arm_model=rob.arm, T_flange_tool=tool)
+        except MMPAError:
+            if arm.calls:
+                raise SilentWrong(f"refused after the arm moved: {arm.calls}") from None
+            raise
+
+    still = np.tile(home, (20, 1))
+    for label, tk, tool in (
+        ("joint 1 jumps 1.5 rad, tool path does not", task(q, fk(rob.arm.dh, still, tcp)), tcp),
+        ("tool path of the flange, replayed with the TCP", task(q, fk(rob.arm.dh, q)), tcp),
+        (
+            "joint 6 off by 0.2 rad all along",
+            task(still + np.r_[0, 0, 0, 0, 0, 0.2], fk(rob.arm.dh, still, tcp)),
+            tcp,
+        ),
+        (
+            "tool path of random joints",
+            task(still, fk(rob.arm.dh, still + rng.normal(0, 0.3, (20, 6)), tcp)),
+            tcp,
+        ),
+    ):
+        cases.append(Case("real data", f"TMMA: {label}", lambda tk=tk, tool=tool: tmma(tk, tool)))
+
+    def slowed() -> Any:
+        rec: list[str] = []
+        h = logging.Handler()
+        h.emit = lambda r: rec.append(r.getMessage())  # type: ignore[method-assign]
+        log = logging.getLogger("mmpa")
+        log.addHandler(h)
+        old = log.level
+        log.setLevel(logging.WARNING)
+        try:
+            path, _ = tmma(task(q, fk(rob.arm.dh, q, tcp)), tcp)
+        finally:
+            log.removeHandler(h)
+            log.setLevel(old)
+        return path, rec
+
+    def check_slowed(res: Any) -> None:
+        path, rec = res
+        said = [m for m in rec if "slowed" in m]
+        if path.time_scale > 1 and said:
+            raise Handled(f"time_scale {path.time_scale:.2f}, warned: {said[0][:90]}")
+        raise SilentWrong(f"time_scale {path.time_scale:.2f}, warnings {rec}")
+
+    cases.append(
+        Case("real data", "TMMA: joint 1 taught 1.5 rad in 20 ms (too fast)", slowed, check_slowed)
+    )
+    # ---- camera info
+    k = CameraIntrinsics(fx=600.0, fy=600.0, cx=320.0, cy=240.0)
+    msg = rm.camera_info(k, 0.0, "cam")
+    for label, change in {
+        "K all zero (uncalibrated driver)": {"k": np.zeros(9)},
+        "fx NaN": {"k": np.r_[np.nan, 0, 320, 0, 600, 240, 0, 0, 1.0]},
+        "fy negative": {"k": np.r_[600, 0, 320, 0, -600, 240, 0, 0, 1.0]},
+        "width 0": {"width": 0},
+    }.items():
+        bad_msg = dataclasses.replace(msg, **change)
+        cases.append(
+            Case("real data", f"camera info: {label}", lambda m=bad_msg: rm.from_camera_info(m))
+        )
+    return cases
+
+
 # ============================================================================ running
 
 
@@ -1759,6 +2068,7 @@ CLASSES: dict[str, Callable[[Path, np.random.Generator], list[Case]]] = {
     "bundles": bundle_cases,
     "task store": store_cases,
     "cli": cli_cases,
+    "real data": real_data_cases,
 }
 
 

@@ -227,6 +227,11 @@ def store_db(tmp_path: Path) -> Path:
         ),
         ("UPDATE clouds SET ply = substr(ply, 1, 20) WHERE task = 'valve'", "not a PLY"),
         ("UPDATE clouds SET ply = 'text' WHERE task = 'valve'", "clouds.ply is not a blob"),
+        ("UPDATE clouds SET ply = ply || x'00' WHERE task = 'valve'", "clouds.ply is not a blob"),
+        (
+            "UPDATE clouds SET ply = CAST(ply || x'0000' AS BLOB) WHERE task = 'valve'",
+            "truncated or padded",
+        ),
         (
             "UPDATE paths SET q = substr(q, 1, length(q) - 48) WHERE task = 'valve'",
             "paths.q has",
@@ -258,3 +263,133 @@ def test_tasks_list_refuses_a_task_whose_blobs_are_missing_or_cut(store_db, sql,
     res = CliRunner().invoke(app, ["tasks", "list", "--db", str(store_db)])
     assert res.exit_code == 2 and "Traceback" not in res.output
     assert said in " ".join(res.output.split())
+
+
+# ------------------------------------------------------------------- TMMA replay checks
+
+
+class _RecordingArm:
+    """An ``Arm`` that records what it is told and moves nowhere else."""
+
+    def __init__(self, q: np.ndarray) -> None:
+        self.q = np.asarray(q, float).copy()
+        self.calls: list[str] = []
+
+    def joint_positions(self) -> np.ndarray:
+        return self.q.copy()
+
+    def move_joints(self, q, duration=None) -> None:
+        self.calls.append("move_joints")
+        self.q = np.asarray(q, float).copy()
+
+    def follow(self, t, q, record_hz=None):
+        self.calls.append("follow")
+        self.q = np.asarray(q, float)[-1].copy()
+        return None
+
+
+def _task(q: np.ndarray, T: np.ndarray, name: str = "jump"):
+    from mmpa.robot.interfaces import PointCloud
+    from mmpa.tasks import Task, ToolPath
+
+    t = np.arange(len(q)) * 0.02
+    cloud = PointCloud(np.random.default_rng(0).normal(size=(10, 3)), None)
+    return Task(name, "0", np.eye(4), q[0], np.eye(4), cloud, ToolPath(t, q, T, 50.0))
+
+
+def _jump_path() -> np.ndarray:
+    from mmpa.robot.description import ArmDescription
+
+    q = np.tile(np.array(ArmDescription().home), (20, 1))
+    q[10:, 0] += 1.5  # joint 1 jumps 1.5 rad in 20 ms
+    return q
+
+
+def test_a_tmma_replay_that_must_be_slowed_says_so(caplog) -> None:
+    from mmpa.missions.mmpa import replay_tmma
+    from mmpa.robot.description import RobotDescription
+    from mmpa.robot.kinematics import fk
+
+    rob = RobotDescription()
+    tcp = rob.gripper.T_flange_tcp
+    q = _jump_path()
+    task = _task(q, fk(rob.arm.dh, q, tcp))  # consistent: only too fast
+    arm = _RecordingArm(q[0])
+    with caplog.at_level("WARNING", logger="mmpa"):
+        path, _ = replay_tmma(task, arm=arm, gripper=None, arm_model=rob.arm, T_flange_tool=tcp)
+    assert path.time_scale > 20  # 1.5 rad in 20 ms is 24x joint 1's velocity limit
+    (rec,) = [r for r in caplog.records if "slowed" in r.getMessage()]
+    assert rec.levelname == "WARNING" and rec.name == "mmpa.missions.mmpa"
+    assert f"slowed {path.time_scale:.2f}x" in rec.getMessage() and "task jump" in rec.getMessage()
+    assert arm.calls[0] == "move_joints" and "follow" in arm.calls
+    # a path within the limits replays at its own pace, with no warning
+    caplog.clear()
+    slow = _task(q[:10], fk(rob.arm.dh, q[:10], tcp), "calm")
+    path, _ = replay_tmma(
+        slow, arm=_RecordingArm(q[0]), gripper=None, arm_model=rob.arm, T_flange_tool=tcp
+    )
+    assert path.time_scale == 1.0
+    assert not [r for r in caplog.records if "slowed" in r.getMessage()]
+
+
+def test_tmma_refuses_joints_that_are_not_the_tool_path_before_moving() -> None:
+    from mmpa.missions.mmpa import replay_tmma, tool_path_mismatch
+    from mmpa.robot.description import RobotDescription
+    from mmpa.robot.kinematics import fk
+
+    rob = RobotDescription()
+    tcp = rob.gripper.T_flange_tcp
+    q = _jump_path()
+    T = fk(rob.arm.dh, np.tile(q[0], (len(q), 1)), tcp)  # the tool path never jumps
+    task = _task(q, T)
+    d, ang, i = tool_path_mismatch(task, rob.arm, tcp)
+    # joint 1 turns the tool about the base z axis: a chord of 1.5 rad at the tool's radius
+    chord = 2 * np.hypot(*T[0, :2, 3]) * math.sin(0.75)
+    assert i >= 10 and d == pytest.approx(chord, abs=1e-9) and ang == pytest.approx(1.5)
+    arm = _RecordingArm(q[0])
+    with pytest.raises(
+        InvalidInputError, match=rf"disagree by {chord * 1e3:.1f} mm .*waypoint 1\d"
+    ):
+        replay_tmma(task, arm=arm, gripper=None, arm_model=rob.arm, T_flange_tool=tcp)
+    assert arm.calls == []  # nothing moved
+
+
+def test_tmma_accepts_a_task_taught_with_a_slightly_different_arm_model() -> None:
+    """A task taught with the nominal DH and replayed with a DH off by the twin's harsh
+    kinematic error (1 mm on a and d, 0.1 deg on the angles): the disagreement is real but
+    within MAX_TOOL_MISMATCH (measured over 30 harsh draws on a taught path: <= 9.3 mm /
+    0.67 deg; here one draw on the jump path)."""
+    from mmpa.missions.mmpa import MAX_TOOL_MISMATCH, check_tool_path
+    from mmpa.robot.description import RobotDescription
+    from mmpa.robot.kinematics import fk
+    from mmpa.sim.error_model import ErrorModel, ErrorModelConfig
+
+    rob = RobotDescription()
+    tcp = rob.gripper.T_flange_tcp
+    q = _jump_path()
+    task = _task(q, fk(rob.arm.dh, q, tcp))
+    assert check_tool_path(task, rob.arm, tcp) == (0.0, 0.0)  # the arm model it was taught with
+    other = ErrorModel.sample(rob, ErrorModelConfig(profile="harsh", seed=3)).true.arm
+    mm, deg = check_tool_path(task, other, tcp)
+    assert 0.3 < mm < MAX_TOOL_MISMATCH[0] * 1e3 and 0.0 < deg < np.rad2deg(MAX_TOOL_MISMATCH[1])
+    with pytest.raises(InvalidInputError, match="another arm model or tool"):
+        check_tool_path(task, rob.arm, np.eye(4))  # the flange, not the TCP: 150 mm off
+
+
+# ------------------------------------------------------------------- camera intrinsics
+
+
+def test_an_uncalibrated_camera_info_is_refused_and_distortion_is_logged(caplog) -> None:
+    import dataclasses
+
+    from mmpa.robot.description import CameraIntrinsics
+
+    k = CameraIntrinsics(fx=600.0, fy=601.0, cx=320.0, cy=240.0)
+    msg = rm.camera_info(k, 1.0, "cam_optical")
+    assert rm.from_camera_info(msg) == k
+    with pytest.raises(InvalidInputError, match=r"'cam_optical' is not a calibrated .*--intrin"):
+        rm.from_camera_info(dataclasses.replace(msg, k=np.zeros(9)))  # driver, no calibration
+    with caplog.at_level("WARNING", logger="mmpa"):
+        got = rm.from_camera_info(dataclasses.replace(msg, d=np.array([0.1, -0.2, 0, 0, 0])))
+    assert got == k
+    assert "plumb_bob distortion [0.1, -0.2, 0.0, 0.0, 0.0]" in caplog.text

@@ -15,6 +15,7 @@ publishes its aligned depth.
 
 from __future__ import annotations
 
+import logging
 import math
 from functools import cache
 from typing import Any
@@ -339,16 +340,33 @@ def camera_info(k: CameraIntrinsics, stamp: float, frame_id: str = FRAMES["camer
 
 
 def from_camera_info(msg: Any) -> CameraIntrinsics:
-    """``sensor_msgs/CameraInfo`` (ROS 1 ``K`` or ROS 2 ``k``) -> :class:`CameraIntrinsics`."""
+    """``sensor_msgs/CameraInfo`` (ROS 1 ``K`` or ROS 2 ``k``) -> :class:`CameraIntrinsics`.
+    An uncalibrated camera (``K`` zero, as drivers publish it without a calibration) or a
+    size of 0 is refused (InvalidInputError); a distortion model mmpa ignores is logged."""
     K = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, float).reshape(3, 3)
-    return CameraIntrinsics(
-        width=int(msg.width),
-        height=int(msg.height),
-        fx=float(K[0, 0]),
-        fy=float(K[1, 1]),
-        cx=float(K[0, 2]),
-        cy=float(K[1, 2]),
-    )
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    w, h = int(msg.width), int(msg.height)
+    if (
+        not all(math.isfinite(v) for v in (fx, fy, cx, cy))
+        or fx <= 0
+        or fy <= 0
+        or w <= 0
+        or h <= 0
+    ):
+        raise InvalidInputError(
+            f"camera info of frame {msg.header.frame_id!r} is not a calibrated camera "
+            f"({w}x{h}, fx {fx}, fy {fy}): calibrate it (camera_calibration) or give the "
+            "intrinsics (mmpa register --intrinsics)"
+        )
+    D = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, float)
+    if D.size and np.abs(D).max() > 1e-9:
+        logging.getLogger(__name__).warning(
+            "camera info of frame %r has %s distortion %s; mmpa assumes a pinhole",
+            str(msg.header.frame_id),
+            str(msg.distortion_model),
+            np.round(D, 5).tolist(),
+        )
+    return CameraIntrinsics(width=w, height=h, fx=fx, fy=fy, cx=cx, cy=cy)
 
 
 def range_msg(

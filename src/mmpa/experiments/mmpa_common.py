@@ -243,6 +243,7 @@ class TwinSite:
         self.rng = self.world.error_model.rng(f"mmpa_trials_{site}")
         self.T_map_base_estimate: Array | None = None  # localization estimate after parking
         self.recorder: Any = None  # a mmpa.bags.Recorder while recording (:meth:`recording`)
+        self.tmma_time_scale: float | None = None  # of the last TMMA replay (run_tmma)
         self._map_recorded = False
         if task is None:
             demos = load_demonstrations()
@@ -502,14 +503,18 @@ class TwinSite:
         return self.key_error(rec[1], rec[0], res.joint_path.t[self.taught.key_index])
 
     def run_tmma(self) -> float:
+        """Replay the taught joints (TMMA); the key-pose tool error (m). The replayed path's
+        time scale (> 1: slowed down to the joint limits) is kept in :attr:`tmma_time_scale`."""
         w = self.world
         path, rec = replay_tmma(
             self.taught.task,
             arm=w.arm,
             gripper=w.gripper,
             arm_model=w.nominal.arm,
+            T_flange_tool=w.nominal.gripper.T_flange_tcp,
             record_hz=self.taught.task.path.rate_hz,
         )
+        self.tmma_time_scale = path.time_scale
         assert rec is not None
         t_key = path.t[self.taught.key_index]
         return self.key_error(rec[1], rec[0], t_key)

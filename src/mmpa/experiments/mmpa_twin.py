@@ -87,6 +87,9 @@ def run_task(
         out: dict = {"profile": cfg.errors.profile, "task": name, "site": site, "trial": trial}
         if tmma:
             out["tmma_tool_error_mm"] = round(ts.run_tmma() * 1e3, 2)
+            scale = ts.tmma_time_scale
+            assert scale is not None
+            out["tmma_time_scale"] = round(scale, 3)  # > 1: slowed down to the joint limits
             ts.world.reset(site=site, pose2d=ts.parked_pose2d)
         res = ts.run_ipe(execute=False)
         truth = ts.parking_truth()
@@ -102,6 +105,8 @@ def run_task(
             out["estimate_E_t_mm"] = round(row["E_t"] * 1e3, 3)
             out["estimate_E_R"] = round(row["E_R"], 5)
         if res.ok:
+            assert res.joint_path is not None
+            out["path_time_scale"] = round(res.joint_path.time_scale, 3)  # > 1: slowed down
             out["tool_error_mm"] = round(ts.execute(res) * 1e3, 3)
             out["executed"] = True
         else:

@@ -34,14 +34,17 @@ from mmpa.tasks import Task, ToolPath
 _log = logging.getLogger(__name__)
 
 __all__ = [
+    "MAX_TOOL_MISMATCH",
     "AutomationConfig",
     "AutomationResult",
     "TeachConfig",
     "automate",
+    "check_tool_path",
     "execute_joint_path",
     "repark_motion",
     "replay_tmma",
     "teach",
+    "tool_path_mismatch",
     "trajectory_recorder",
 ]
 
@@ -51,6 +54,11 @@ Progress = Callable[[str, float], None]
 Repark = Callable[[Array], "Array | None"]
 #: a demonstration recorder: runs the demonstration, returns (t (M,), q (M, 6), gripper (M,), f)
 Recorder = Callable[[], tuple[Array, Array, Array, float]]
+#: the largest disagreement (m, rad) between a task's joint path (FK of the arm model) and its
+#: tool path that still counts as one task: 0 for a task taught and run with one arm model;
+#: up to 9.3 mm / 0.67 deg when the model differs by the twin's harsh DH error (1 mm,
+#: 0.1 deg; 30 draws over a taught path; 4.6 mm / 0.34 deg realistic): twice that
+MAX_TOOL_MISMATCH = (0.02, float(np.deg2rad(2.0)))
 
 
 class TeachConfig(BaseModel):
@@ -233,6 +241,7 @@ def automate(
                 robot.arm, T_new, arm.joint_positions(), robot.gripper.T_flange_tcp, cfg.plan
             )
             out.joint_path = retime(task.path.t, q_path, robot.arm, cfg.plan)
+            _warn_slowed(task, out.joint_path, "the adapted path")
             break
         except (UnreachableError, JointLimitError) as e:
             out.reason = f"path planning failed: {e}"
@@ -308,18 +317,74 @@ def replay_tmma(
     arm: Arm,
     gripper: Gripper | None,
     arm_model: ArmDescription,
+    T_flange_tool: Array,
     record_hz: float | None = None,
+    max_mismatch: tuple[float, float] = MAX_TOOL_MISMATCH,
 ) -> tuple[JointPath, tuple[Array, Array] | None]:
     """TMMA baseline: replay the taught joint sequence without correction (the sampling pose,
     then the recorded joint path), as Nair et al. 2019 replay a recorded arm motion.
 
-    The recorded path is retimed to the full joint limits of ``arm_model`` first (a taught
-    path recorded from the arm itself needs no stretch: ``time_scale`` 1; an edited or
-    corrupted one is slowed down, never played past the limits). Returns the executed
-    ``JointPath`` and the recording (``None`` without ``record_hz``).
+    First the joints must be the taught tool path: :func:`check_tool_path` with
+    ``T_flange_tool`` (the tool the path was taught with) refuses a task whose joint path
+    disagrees with its tool path by more than ``max_mismatch`` before anything moves. The
+    recorded path is then retimed to the full joint limits of ``arm_model`` (a taught path
+    recorded from the arm itself needs no stretch: ``time_scale`` 1; an edited or corrupted
+    one is slowed down, with a warning, never played past the limits). Returns the executed
+    ``JointPath`` (its ``time_scale``) and the recording (``None`` without ``record_hz``).
     """
+    mismatch = check_tool_path(task, arm_model, T_flange_tool, max_mismatch)
     full = PathPlanConfig(velocity_scale=1.0, acceleration_scale=1.0)
     path = retime(task.path.t, task.path.q, arm_model, full)
+    _warn_slowed(task, path, "the TMMA replay")
+    _log.info("task %s: joints vs tool path %.2f mm / %.3f deg", task.name, *mismatch)
     arm.move_joints(task.q_sample)
     rec = execute_joint_path(arm, gripper, path, task.path.gripper, record_hz=record_hz)
     return path, rec
+
+
+def tool_path_mismatch(
+    task: Task, arm_model: ArmDescription, T_flange_tool: Array
+) -> tuple[float, float, int]:
+    """How far the task's joint path is from its tool path: the largest position (m) and
+    rotation (rad) difference between ``fk(arm_model.dh, q_i) T_flange_tool`` and the stored
+    ``T_arm_base_tool[i]``, and the waypoint ``i`` of the largest position difference."""
+    T = fk(arm_model.dh, task.path.q, np.asarray(T_flange_tool, dtype=float))
+    P = task.path.T_arm_base_tool
+    d = np.linalg.norm(T[:, :3, 3] - P[:, :3, 3], axis=1)
+    cos = (np.einsum("nij,nij->n", T[:, :3, :3], P[:, :3, :3]) - 1.0) / 2.0
+    i = int(np.argmax(d))
+    return float(d[i]), float(np.arccos(np.clip(cos, -1.0, 1.0)).max()), i
+
+
+def check_tool_path(
+    task: Task,
+    arm_model: ArmDescription,
+    T_flange_tool: Array,
+    max_mismatch: tuple[float, float] = MAX_TOOL_MISMATCH,
+) -> tuple[float, float]:
+    """Refuse (InvalidInputError) a task whose joint path and tool path disagree by more
+    than ``max_mismatch`` (m, rad; :func:`tool_path_mismatch`): edited or damaged, or taught
+    with another arm model or tool. Returns the disagreement (mm, deg)."""
+    d, ang, i = tool_path_mismatch(task, arm_model, T_flange_tool)
+    if d > max_mismatch[0] or ang > max_mismatch[1]:
+        raise InvalidInputError(
+            f"task {task.name!r}: its joint path and its tool path disagree by {d * 1e3:.1f} mm"
+            f" / {np.rad2deg(ang):.2f} deg (waypoint {i}; the arm model's FK of the joints vs "
+            f"the stored tool poses; allowed {max_mismatch[0] * 1e3:g} mm / "
+            f"{np.rad2deg(max_mismatch[1]):g} deg): the task was edited or damaged, or taught "
+            "with another arm model or tool; re-teach it or use the robot file it was taught with"
+        )
+    return d * 1e3, float(np.rad2deg(ang))
+
+
+def _warn_slowed(task: Task, path: JointPath, what: str) -> None:
+    """Log (warning) that ``path`` had to be slowed down to respect the joint limits."""
+    if path.time_scale > 1.0 + 1e-9:
+        _log.warning(
+            "task %s: %s is slowed %.2fx to respect the joint limits (taught %.2f s, runs %.2f s)",
+            task.name,
+            what,
+            path.time_scale,
+            path.duration / path.time_scale,
+            path.duration,
+        )

@@ -113,7 +113,7 @@ _JSON = {"separators": (",", ":"), "allow_nan": False}
 
 #: every ``tasks`` column, with the types, sizes and first bytes of the task's blobs
 _LIST_SQL = (
-    "SELECT tasks.*, clouds.task AS c_task, substr(clouds.ply, 1, 4096) AS ply_head, "
+    "SELECT tasks.*, clouds.task AS c_task, substr(CAST(clouds.ply AS BLOB), 1, 4096) AS ply_head, "
     "paths.task AS p_task, "
     + ", ".join(
         f"typeof({c}) AS {c.split('.')[1]}_type, length({c}) AS {c.split('.')[1]}_len"
