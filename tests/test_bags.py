@@ -433,7 +433,7 @@ def test_localize_cli_writes_the_run_folder(twin_recording, tmp_path) -> None:
     s = json.loads((out / "summary.json").read_text())
     assert s["scans"] == 4 and s["truth"] is True and s["error_mean_mm"] < 50.0
     rows = np.loadtxt(out / "estimate.csv", delimiter=",", skiprows=1)
-    assert rows.shape == (4, 11)
+    assert rows.shape == (4, 15)  # + ok, explained, crossed, spread_xy (health)
     np.testing.assert_allclose(rows[-1, 1:4], s["final_estimate"], atol=1e-6)
     assert (out / "trajectory.png").stat().st_size > 1000
     got = bag_topics(out / "estimate.mcap")

@@ -7,7 +7,13 @@ given), exactly as the twin's loops do; with the same method, seed and ``force``
 recorded twin run it reproduces that run's estimates. :func:`run_localize` writes the run
 folder: ``estimate.csv``, ``estimate.mcap`` (``/amcl_pose``, ``/tf`` map -> odom), a
 trajectory plot ``trajectory.png`` and ``summary.json`` (with the error against
-``/truth/base_pose`` when the bag has it).
+``/truth/base_pose`` when the bag has it). Each estimate's health
+(:mod:`mmpa.localization.health`: ``ok``, ``reason``, explained and crossed shares, spread)
+goes into ``estimate.csv`` (columns ``ok`` 1/0, ``explained``, ``crossed``, ``spread_xy``),
+``not_ok.csv`` (time and reason of each estimate that was not ok), ``summary.json``
+(``health``: the ``ok=False`` count, first reasons, medians and minima) and
+``estimate.mcap`` (``/diagnostics``, ``diagnostic_msgs/DiagnosticArray``: level ERROR with
+the reason when not ok).
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ from mmpa.bags import messages as rm
 from mmpa.bags.writer import BagWriter
 from mmpa.errors import InvalidInputError
 from mmpa.geometry import Array, T_to_se2, inv, se2_to_T, wrap_angle
+from mmpa.localization.health import Health
 
 if TYPE_CHECKING:  # pragma: no cover
     from mmpa.localization.maps import OccupancyGrid
@@ -65,6 +72,25 @@ class LocalizeResult:
     seconds: float
     laser_pose: Array | None = None  # [x, y, yaw] of the lidar in base_link, as used
     laser_pose_source: str = ""  # "user" | "tf_static" | "robot_file" (_laser_pose)
+    ok: list[bool] | None = None  # per scan: the estimate's ok, reason and Health
+    reason: list[str] | None = None
+    health: list[Health] | None = None
+
+    def health_summary(self) -> dict:
+        """Counts of ``ok=False`` estimates, their first distinct reasons, and the median /
+        minimum of the health figures (NaN-free)."""
+        if self.ok is None or self.health is None or self.reason is None:
+            return {}
+        out: dict = {"not_ok": int(sum(not o for o in self.ok)), "updates": len(self.ok)}
+        out["reasons"] = list(dict.fromkeys(r for r in self.reason if r))[:5]
+        for f in ("explained", "crossed", "spread_xy"):
+            v = np.array([getattr(h, f) for h in self.health], float)
+            v = v[np.isfinite(v)]
+            if v.size:
+                out[f"{f}_median"] = round(float(np.median(v)), 4)
+                out[f"{f}_min"] = round(float(v.min()), 4)
+                out[f"{f}_max"] = round(float(v.max()), 4)
+        return out
 
     def errors(self) -> dict[str, float] | None:
         """Position error statistics (mm) and heading error (deg) against the truth."""
@@ -170,6 +196,7 @@ def localize_bag(
     lidar, odometry = BagLidar(pb), BagOdometry(pb)
     n = len(lidar) if cfg.max_scans is None else min(len(lidar), cfg.max_scans)
     ts, est, covs, odoms, truth = [], [], [], [], []
+    oks, reasons, healths = [], [], []
     t0 = time.perf_counter()
     for _ in range(n):
         scan = lidar.scan()
@@ -180,6 +207,9 @@ def localize_bag(
         covs.append(np.asarray(res.cov, float))
         odoms.append(odom)
         truth.append(pb.truth_at(scan.stamp))
+        oks.append(bool(res.ok))
+        reasons.append(res.reason)
+        healths.append(res.health)
     seconds = time.perf_counter() - t0
     has_truth = pb.truth_base is not None
     return LocalizeResult(
@@ -192,6 +222,9 @@ def localize_bag(
         seconds=seconds,
         laser_pose=mount,
         laser_pose_source=mount_source,
+        ok=oks,
+        reason=reasons,
+        health=healths,
     )
 
 
@@ -202,7 +235,23 @@ def _write_csv(path: Path, res: LocalizeResult) -> None:
         cols += ["truth_x", "truth_y", "truth_theta", "error_mm"]
         err = np.hypot(*(res.estimate[:, :2] - res.truth[:, :2]).T) * 1e3
         rows += [res.truth, err[:, None]]
-    np.savetxt(path, np.hstack(rows), delimiter=",", header=",".join(cols), comments="", fmt="%.9g")
+    table = np.hstack(rows)
+    if res.ok is None or res.health is None or res.reason is None:
+        np.savetxt(path, table, delimiter=",", header=",".join(cols), comments="", fmt="%.9g")
+        return
+    cols += ["ok", "explained", "crossed", "spread_xy"]
+    h = np.array(
+        [[o, x.explained, x.crossed, x.spread_xy] for o, x in zip(res.ok, res.health, strict=True)]
+    )
+    np.savetxt(
+        path, np.hstack([table, h]), delimiter=",", header=",".join(cols), comments="", fmt="%.9g"
+    )
+    # the reasons of the estimates that were not ok, one line each (text: its own file)
+    with open(path.with_name("not_ok.csv"), "w", encoding="utf-8") as f:
+        f.write("t,reason\n")
+        for t, ok, why in zip(res.t, res.ok, res.reason, strict=True):
+            if not ok:
+                f.write(f'{t:.9g},"{why.replace(chr(34), chr(39))}"\n')
 
 
 def _write_estimate_bag(path: Path, res: LocalizeResult) -> None:
@@ -213,6 +262,18 @@ def _write_estimate_bag(path: Path, res: LocalizeResult) -> None:
             T_map_odom = se2_to_T(*p) @ inv(se2_to_T(*o))
             tf = rm.transform_stamped(t, F["map"], F["odom"], T_map_odom)
             bag.write("/tf", rm.tf_message([tf]), t)
+        if res.ok is None or res.health is None or res.reason is None:
+            return
+        for t, ok, h, why in zip(res.t, res.ok, res.health, res.reason, strict=True):
+            vals = {
+                "explained": h.explained,
+                "crossed": h.crossed,
+                "spread_xy": h.spread_xy,
+                "odom_ok": h.odom_ok,
+                "scan_ok": h.scan_ok,
+            }
+            msg = rm.diagnostics(t, f"localization/{res.method}", ok, why or "ok", vals)
+            bag.write("/diagnostics", msg, t)
 
 
 def _plot(path: Path, res: LocalizeResult, grid: OccupancyGrid) -> None:
@@ -297,6 +358,7 @@ def run_localize(
         "compute_s": round(res.seconds, 3),
         "final_estimate": [round(float(v), 6) for v in res.estimate[-1]],
         "truth": res.truth is not None,
+        "health": res.health_summary(),
     }
     errs = res.errors()
     if errs is not None:

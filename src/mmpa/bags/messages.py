@@ -32,6 +32,7 @@ __all__ = [
     "T",
     "camera_info",
     "depth_image",
+    "diagnostics",
     "from_camera_info",
     "from_depth_image",
     "from_image_rgb",
@@ -435,6 +436,20 @@ def from_transform(ts: Any) -> tuple[str, str, Array]:
         str(ts.child_frame_id),
         make_T(_R_of(tr.rotation), [t.x, t.y, t.z]),
     )
+
+
+def diagnostics(stamp: float, name: str, ok: bool, message: str, values: dict[str, Any]) -> Any:
+    """``diagnostic_msgs/DiagnosticArray`` (``/diagnostics``) with one status ``name``:
+    level OK (0) or ERROR (2) by ``ok``, ``message`` (the reason), ``values`` as key/value
+    strings (floats with 4 significant digits)."""
+    kv = T("diagnostic_msgs/msg/KeyValue")
+    st = T("diagnostic_msgs/msg/DiagnosticStatus")
+    items = [
+        kv(key=str(k), value=f"{v:.4g}" if isinstance(v, float) else str(v))
+        for k, v in values.items()
+    ]
+    status = st(level=0 if ok else 2, name=name, message=message, hardware_id="", values=items)
+    return T("diagnostic_msgs/msg/DiagnosticArray")(header=_header(stamp, ""), status=[status])
 
 
 def tf_message(transforms: list[Any]) -> Any:

@@ -32,6 +32,7 @@ from mmpa.geometry import Array
 __all__ = [
     "Health",
     "HealthConfig",
+    "crossed_share",
     "explained_near",
     "explained_share",
     "odometry_plausible",
@@ -82,6 +83,11 @@ class HealthConfig(BaseModel):
     #: mirrored angles, ranges times these factors (a wrong unit)
     alt_scales: tuple[float, ...] = (0.5, 2.0, 0.1, 10.0, 0.01, 100.0, 0.001, 1000.0)
     alt_below: float = Field(0.8, ge=0, le=1)
+    #: m and rad, a beam crossing a wall this far before its endpoint saw through it
+    cross_margin: float = Field(0.3, ge=0)
+    cross_angle: float = Field(np.deg2rad(1.0), ge=0)
+    #: the window median of the crossed share above which the localizer says "lost"
+    crossed_above: float = Field(0.45, ge=0, le=1)
     #: an alternative reading explaining this much more (window medians) says the input is
     #: inconsistent
     alt_margin: float = Field(0.3, ge=0, le=1)
@@ -93,7 +99,9 @@ class Health:
 
     ``explained`` share (0-1) of the valid beams the map explains at the estimate (NaN: too
     few valid beams to judge); ``window`` the median of ``explained`` over the last
-    ``HealthConfig.window`` updates; ``alternative`` the reading of the scan that explains
+    ``HealthConfig.window`` updates; ``crossed`` the share of beams that saw through a
+    wall of the map at the best pose near the estimate, ``crossed_window`` its window
+    median; ``alternative`` the reading of the scan that explains
     the map best when that beats the scan as given ("mirrored", "ranges x 0.5", ... or ''),
     ``alternative_gain`` its window median gain in explained share; ``beams`` the valid
     beams judged; ``spread_xy`` m the position spread (NaN where the method has no
@@ -103,6 +111,8 @@ class Health:
 
     explained: float = float("nan")
     window: float = float("nan")
+    crossed: float = float("nan")
+    crossed_window: float = float("nan")
     alternative: str = ""
     alternative_gain: float = 0.0
     beams: int = 0
@@ -193,6 +203,48 @@ def explained_near(
     share = np.mean(d <= explain_dist + r[None, :] * np.sin(explain_angle), axis=1)
     best = int(np.argmax(share))
     return float(share[best]), P[best].copy()
+
+
+def crossed_share(
+    occupied: Array,
+    resolution: float,
+    origin: tuple[float, float],
+    pose: Array,
+    ranges: Array,
+    angles: Array,
+    laser_pose: Array | None = None,
+    margin: float = 0.3,
+    margin_angle: float = 0.0,
+) -> float:
+    """Share of the beams whose ray passes through an occupied cell of ``occupied`` (H, W)
+    bool more than ``margin + r sin(margin_angle)`` m before its endpoint: the scan saw
+    through what the map calls a wall. At the right pose a beam stops at the first wall
+    (only an opened door or a moved object lets one through); ranges in the wrong unit,
+    mirrored angles, another building's map or an estimate metres off send many beams
+    through walls. Samples every ``resolution / 2`` along each ray (a wall one cell thick is
+    not jumped over); off the map counts as free. No beams: NaN."""
+    r = np.asarray(ranges, float)
+    a = np.asarray(angles, float)
+    if r.size == 0:
+        return float("nan")
+    lp = np.zeros(3) if laser_pose is None else np.asarray(laser_pose, float)
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    ox, oy = pose[0] + c * lp[0] - s * lp[1], pose[1] + s * lp[0] + c * lp[1]
+    th = a + pose[2] + lp[2]
+    stop = np.maximum(r - margin - r * np.sin(margin_angle), 0.0)
+    step = resolution / 2
+    n = np.ceil(stop / step).astype(np.int64)
+    ray = np.repeat(np.arange(r.size), n)
+    t = (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)) * step
+    col = np.floor((ox + t * np.cos(th[ray]) - origin[0]) / resolution).astype(np.int64)
+    row = np.floor((oy + t * np.sin(th[ray]) - origin[1]) / resolution).astype(np.int64)
+    h, w = occupied.shape
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    hit = np.zeros(ray.shape, dtype=bool)
+    hit[inside] = occupied[row[inside], col[inside]]
+    crossed = np.zeros(r.size, dtype=bool)
+    crossed[ray[hit]] = True
+    return float(np.mean(crossed))
 
 
 def position_spread(cov: Array) -> float:

@@ -37,6 +37,7 @@ from mmpa.localization.amcl import PoseEstimate, check_scan, finite_pose
 from mmpa.localization.health import (
     Health,
     HealthConfig,
+    crossed_share,
     explained_near,
     odometry_plausible,
     position_spread,
@@ -77,6 +78,7 @@ class MonitoredLocalizer:
         self.health_cfg = cfg or HealthConfig()
         self.laser_pose = finite_pose(laser_pose, "laser pose")
         self._dist = grid.distance_field(self.health_cfg.max_dist)
+        self._occ = grid.occupied
         self._res = float(grid.resolution)
         self._origin = (float(grid.origin[0]), float(grid.origin[1]))
         self._reset()
@@ -84,6 +86,7 @@ class MonitoredLocalizer:
     def _reset(self) -> None:
         self._shares: deque[float] = deque(maxlen=self.health_cfg.window)
         self._alts: deque[tuple[str, float]] = deque(maxlen=self.health_cfg.window)
+        self._crossed: deque[float] = deque(maxlen=self.health_cfg.window)
         self._lost = False
         self._fix = np.zeros(3)  # SE(2) correction applied to the raw odometry
         self._raw_prev: Array | None = None
@@ -153,9 +156,9 @@ class MonitoredLocalizer:
             est, ok=est.ok and not reasons, reason="; ".join(reasons), health=health
         )
 
-    def _share(self, pose: Array, ranges: Array, angles: Array) -> float:
+    def _share(self, pose: Array, ranges: Array, angles: Array) -> tuple[float, Array]:
         c = self.health_cfg
-        share, _ = explained_near(
+        return explained_near(
             self._dist,
             self._res,
             self._origin,
@@ -168,52 +171,70 @@ class MonitoredLocalizer:
             c.search_xy,
             c.search_theta,
         )
-        return share
 
-    def _explained(self, pose: Array, scan: LaserScan) -> tuple[float, int, str, float]:
-        """This scan's explained share near ``pose``, its beam count, and the best
-        alternative reading (mirrored angles, scaled ranges) with its share ('' and NaN if
-        the scan's own share is at least ``alt_below``)."""
+    def _explained(self, pose: Array, scan: LaserScan) -> tuple[float, float, int, str, float]:
+        """This scan's explained share near ``pose``, its crossed share at the best pose
+        there, its beam count, and the best alternative reading (mirrored angles, scaled
+        ranges) with its share ('' and NaN if the scan's own share is at least
+        ``alt_below``)."""
         c = self.health_cfg
         m = np.flatnonzero(scan.valid() & (scan.ranges > 0))
         if m.size > c.max_beams:
             m = m[np.linspace(0, m.size - 1, c.max_beams).astype(int)]
         if m.size < c.min_beams or not np.all(np.isfinite(pose)):
-            return float("nan"), int(m.size), "", float("nan")
+            return float("nan"), float("nan"), int(m.size), "", float("nan")
         r, a = scan.ranges[m], scan.angles[m]
-        share = self._share(pose, r, a)
+        share, best_pose = self._share(pose, r, a)
+        crossed = crossed_share(
+            self._occ,
+            self._res,
+            self._origin,
+            best_pose,
+            r,
+            a,
+            self.laser_pose,
+            c.cross_margin,
+            c.cross_angle,
+        )
         if share >= c.alt_below:
-            return share, int(m.size), "", float("nan")
+            return share, crossed, int(m.size), "", float("nan")
         alts = {"mirrored angles": (r, scan.angle_min + scan.angle_max - a)}
         for f in c.alt_scales:
             alts[f"ranges x {f:g}"] = (r * f, a)
         best, best_share = "", -1.0
         for name, (ra, aa) in alts.items():
             ok = np.isfinite(ra) & (ra <= scan.range_max)
-            sh = self._share(pose, ra[ok], aa[ok]) * ok.mean() if ok.any() else 0.0
+            sh = self._share(pose, ra[ok], aa[ok])[0] * ok.mean() if ok.any() else 0.0
             if sh > best_share:
                 best, best_share = name, sh
-        return share, int(m.size), best, best_share
+        return share, crossed, int(m.size), best, best_share
 
-    def _window(self, share: float, alt: str, alt_share: float) -> tuple[float, str, float]:
-        """Append to the window; its median share, and the alternative reading with its
-        median gain (0 for updates where none was tried or another one won)."""
+    def _window(
+        self, share: float, crossed: float, alt: str, alt_share: float
+    ) -> tuple[float, float, str, float]:
+        """Append to the window; its median explained and crossed shares, and the
+        alternative reading with its median gain (0 for updates where none was tried or
+        another one won). Updates the lost state (hysteresis)."""
         c = self.health_cfg
         if np.isfinite(share):
             self._shares.append(share)
+            self._crossed.append(crossed)
             self._alts.append((alt, alt_share - share if alt else 0.0))
         window = float(np.median(self._shares)) if self._shares else float("nan")
+        cross = float(np.median(self._crossed)) if self._crossed else float("nan")
+        if len(self._shares) == c.window:
+            bad = window < c.lost_below or cross > c.crossed_above
+            good = window > c.recover_above and cross < 0.75 * c.crossed_above
+            if not self._lost and bad:
+                self._lost = True
+            elif self._lost and good:
+                self._lost = False
         names = [n for n, _ in self._alts if n]
         if not names:
-            return window, "", 0.0
+            return window, cross, "", 0.0
         top = max(set(names), key=names.count)
         gain = float(np.median([g if n == top else 0.0 for n, g in self._alts]))
-        if len(self._shares) == c.window:
-            if not self._lost and window < c.lost_below:
-                self._lost = True
-            elif self._lost and window > c.recover_above:
-                self._lost = False
-        return window, top, gain
+        return window, cross, top, gain
 
     def _judge(self, est: PoseEstimate, pose: Array, scan: LaserScan) -> tuple[Health, list[str]]:
         """The health at ``pose`` after this update and the reasons to say ``ok=False``."""
@@ -229,8 +250,8 @@ class MonitoredLocalizer:
             if est.source == "amcl" and hasattr(self.inner, "observer"):
                 msg += "; no reflector fix: fell back to plain AMCL"
             reasons.append(msg)
-        share, n, alt, alt_share = self._explained(pose, scan)
-        window, alt, gain = self._window(share, alt, alt_share)
+        share, crossed, n, alt, alt_share = self._explained(pose, scan)
+        window, cross, alt, gain = self._window(share, crossed, alt, alt_share)
         full = len(self._shares) == c.window
         if full and gain > c.alt_margin and window < c.alt_below:
             reasons.append(
@@ -240,8 +261,9 @@ class MonitoredLocalizer:
             )
         if self._lost:
             reasons.append(
-                f"lost: only {window:.0%} of beams explained by the map (median of the last "
-                f"{len(self._shares)} updates; lost below {c.lost_below:.0%})"
+                f"lost: {window:.0%} of beams explained by the map, {cross:.0%} seen through "
+                f"its walls (medians of the last {len(self._shares)} updates; lost below "
+                f"{c.lost_below:.0%} or above {c.crossed_above:.0%})"
             )
         spread = position_spread(est.cov) if est.n_particles > 0 else float("nan")
         if spread > c.spread_max:
@@ -249,6 +271,8 @@ class MonitoredLocalizer:
         health = Health(
             explained=share,
             window=window,
+            crossed=crossed,
+            crossed_window=cross,
             alternative=alt if gain > 0 else "",
             alternative_gain=gain,
             beams=n,
