@@ -11,7 +11,8 @@ untouched, then injects one fault for up to ``within`` updates:
 - ``reversed``: angle metadata reversed over unreversed ranges (``angle_increment``
   negated, ``angle_min``/``angle_max`` swapped);
 - ``mirrored_map`` / ``shifted_map`` / ``other_building``: the localizer got the map mirrored
-  left-right, shifted 1-3 m and turned, or a random other building (rooms and furniture drawn
+  left-right (reflectors too), its walls shifted 1-3 m (the reflector survey not), or a random
+  other building (rooms and furniture drawn
   from the trial's generator) -- built into the localizer from the start of the trial;
 - ``odom_jump``: the odometry jumps 100 m (random direction) and stays offset;
 - ``odom_spin``: the odometry heading jumps by 120-180 degrees between two scans 0.2 s apart;
@@ -174,9 +175,9 @@ def wrong_map(case: str, grid: OccupancyGrid, rng: np.random.Generator) -> Occup
         d = rng.uniform(1.0, 3.0)
         a = rng.uniform(-np.pi, np.pi)
         dc, dr = np.round(d * np.array([np.cos(a), np.sin(a)]) / grid.resolution).astype(int)
-        data = np.roll(grid.data, (dr, dc), axis=(0, 1))
-        refl = grid.reflectors + np.array([dc, dr]) * grid.resolution
-        return dataclasses.replace(grid, data=data, reflectors=refl)
+        # the walls move, the reflector survey does not (moved together, the map is just
+        # the same building in another frame: a reflector fix then localizes in it rightly)
+        return dataclasses.replace(grid, data=np.roll(grid.data, (dr, dc), axis=(0, 1)))
     return other_building(grid, rng)
 
 
