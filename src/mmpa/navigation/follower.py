@@ -16,9 +16,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.errors import InvalidInputError
 from mmpa.geometry import Array, wrap_angle
-from mmpa.navigation.controller import GoToPoseConfig, go_to_pose_command
+from mmpa.navigation.controller import GoToPoseConfig
 
-__all__ = ["FollowerConfig", "PathFollower"]
+__all__ = ["FollowerConfig", "PathFollower", "goal_frame_error", "within_tolerance"]
 
 
 class FollowerConfig(BaseModel):
@@ -30,16 +30,41 @@ class FollowerConfig(BaseModel):
     turn_in_place: float = Field(0.8, gt=0)  # rad
     slow_radius: float = Field(0.8, gt=0)  # m: v ramps down inside this distance to the goal
     approach_radius: float = Field(0.15, gt=0)  # m: switch to the final approach
-    max_reentries: int = Field(3, ge=0)  # align -> position phase switches allowed
-    final_timeout: float = Field(25.0, gt=0)  # s in the final approach before giving up
-    # creeping along the heading cannot remove a lateral error: with the goal abeam (|ex| <=
-    # pos_tol) and within the creeping band to the side (|ey| <= 2 pos_tol), the position
-    # phase ends (the caller's settle check and corrections judge the pose). Without it a
-    # steady estimate 3-6 mm to the side makes the base creep back and forth until
-    # ``final_timeout`` (an estimate that jitters by a few mm gets out by chance)
-    abeam_done: bool = True
+    # final approach along the goal's heading line (see PathFollower._final): the carrot is
+    # ``final_lookahead`` m ahead of the robot's projection on the line; a lateral offset left
+    # at the goal is removed by backing off ``backoff`` m along the line and creeping in again
+    final_lookahead: float = Field(0.03, gt=0)  # m
+    backoff: float = Field(0.05, gt=0)  # m
+    min_creep: float = Field(0.004, gt=0)  # m/s: the slowest creep (a base's deadband)
+    confirm_ticks: int = Field(4, ge=1)  # standing ticks averaged before a phase decision
+    max_reentries: int = Field(3, ge=0)  # back-offs and align -> position re-entries allowed
+    final_timeout: float = Field(60.0, gt=0)  # s in the final approach before giving up
     final: GoToPoseConfig = GoToPoseConfig(
         k_v=0.6, k_w=1.5, max_v=0.08, max_w=0.3, turn_in_place=0.35, pos_tol=0.003, yaw_tol=0.003
+    )
+
+
+def goal_frame_error(pose: Array, goal: Array) -> tuple[float, float, float]:
+    """``(a, l, e_theta)``: the goal ``a`` m ahead of ``pose`` along the goal heading
+    ``h = (cos th_g, sin th_g)``, the robot ``l`` m to the left of the goal's heading line
+    (``n = (-sin th_g, cos th_g)``) and the heading error ``wrap(th_g - th)`` (rad)."""
+    d = np.asarray(goal[:2], float) - np.asarray(pose[:2], float)
+    c, s = np.cos(goal[2]), np.sin(goal[2])
+    return (
+        float(c * d[0] + s * d[1]),
+        float(s * d[0] - c * d[1]),
+        float(wrap_angle(goal[2] - pose[2])),
+    )
+
+
+def within_tolerance(pose: Array, goal: Array, cfg: GoToPoseConfig, scale: float = 1.0) -> bool:
+    """Whether ``pose`` is at ``goal``: position within ``scale * pos_tol`` (m) and heading
+    within ``scale * yaw_tol`` (rad). The follower ends its final approach at ``scale = 1``;
+    the navigation loop accepts a settled estimate at a looser ``scale`` (its hysteresis)."""
+    rho = float(np.hypot(goal[0] - pose[0], goal[1] - pose[1]))
+    return (
+        rho <= scale * cfg.pos_tol
+        and abs(float(wrap_angle(goal[2] - pose[2]))) <= scale * cfg.yaw_tol
     )
 
 
@@ -59,8 +84,11 @@ class PathFollower:
         self._s = np.concatenate([[0.0], np.cumsum(self._seglen)])
         self._progress = 0.0
         self.final_phase = False
-        self._align = False
+        self._phase = "lineup"
         self._reentries = 0
+        self._backoff_to = self.cfg.backoff
+        self._held: list[tuple[float, float]] = []
+        self._last_pose = self.goal
 
     def _project(self, xy: Array) -> float:
         best, best_s = np.inf, self._progress
@@ -84,49 +112,117 @@ class PathFollower:
         t = 0.0 if L < 1e-9 else (s - self._s[i]) / L
         return self.path[i] + t * (self.path[i + 1] - self.path[i])
 
-    def restart_final(self) -> None:
-        """Re-enter the final approach (after a re-check found the pose off tolerance)."""
-        self._align = False
+    def restart_final(self, pose: Array | None = None) -> None:
+        """One more back-off and creep along the goal line, then the heading (after the
+        caller's settle check found the settled estimate off tolerance). Not limited by
+        ``max_reentries``: the caller bounds its own corrections."""
+        ref = self._last_pose if pose is None else np.asarray(pose, float)
+        self._start_line(goal_frame_error(ref, self.goal)[1])
+
+    @property
+    def phase(self) -> str:
+        """The final approach's phase: ``lineup``, ``creep``, ``align`` or ``backoff``."""
+        return self._phase
+
+    def _start_line(self, lat: float = 0.0) -> None:
+        """Back off along the goal line far enough that pure pursuit removes the lateral
+        offset ``lat`` on the way back and in: ``s = L ln(|lat| / (pos_tol / 2))`` each way,
+        at least ``backoff``."""
+        f, c = self.cfg.final, self.cfg
+        need = c.final_lookahead * float(np.log(max(abs(lat), 1e-9) / (0.5 * f.pos_tol)))
+        self._backoff_to = float(np.clip(need, c.backoff, c.approach_radius))
+        self._phase = "backoff"
+
+    def _confirmed(self, a: float, lat: float) -> tuple[float, float] | None:
+        """Standing still, the mean ``(a, lat)`` over ``confirm_ticks`` ticks (None until
+        then): one estimate, possibly a jump of a scan update, never decides a phase."""
+        self._held.append((a, lat))
+        if len(self._held) < self.cfg.confirm_ticks:
+            return None
+        m = np.mean(self._held, axis=0)
+        self._held = []
+        return float(m[0]), float(m[1])
 
     def _final(self, pose: Array) -> tuple[float, float, bool]:
-        """Final approach with hysteresis: reach the position within ``pos_tol`` (turning
-        toward it only while it is further than 3 ``pos_tol`` to the side, else creeping
-        along the heading), then turn to the goal heading; back to the position phase only if
-        the position drifts beyond 3 ``pos_tol``."""
-        f = self.cfg.final
-        g = self.goal
-        dx, dy = g[0] - pose[0], g[1] - pose[1]
-        rho = float(np.hypot(dx, dy))
-        c, s = np.cos(pose[2]), np.sin(pose[2])
-        ex, ey = c * dx + s * dy, -s * dx + c * dy  # goal in the robot frame
-        if self._align and rho > 3 * f.pos_tol and self._reentries < self.cfg.max_reentries:
-            self._align = False
-            self._reentries += 1
-        if not self._align:
-            if rho <= f.pos_tol or (abs(ey) <= f.pos_tol and abs(ex) <= f.pos_tol):
-                self._align = True
-            elif self.cfg.abeam_done and abs(ex) <= f.pos_tol and abs(ey) <= 2 * f.pos_tol:
-                self._align = True
-            elif abs(ey) <= 2 * f.pos_tol or (rho < 0.01 and abs(ey) < 0.5 * abs(ex)):
-                v = float(np.clip(f.k_v * ex, -f.max_v, f.max_v))
-                if abs(v) < 0.004:
-                    v = 0.004 * np.sign(ex)
-                return v, 0.0, False
-            else:
-                return (*go_to_pose_command(pose, np.array([g[0], g[1], pose[2]]), f)[:2], False)
-        err = float(wrap_angle(g[2] - pose[2]))
-        if abs(err) <= f.yaw_tol:
+        """Final approach along the goal's heading line: (1) ``lineup``: turn on the spot to
+        the goal heading where the approach begins (``approach_radius`` from the goal), so
+        that the turn's shift of the estimate (a lidar mount error is a heading-dependent
+        position bias) is driven out afterwards; (2) ``creep`` to the goal along the line,
+        forward or backward, by pure pursuit on the line (a lateral offset decays as
+        ``exp(-s / final_lookahead)`` over the distance ``s`` driven); (3) ``align`` the
+        heading; done if the position holds within ``pos_tol`` (the mean over
+        ``confirm_ticks`` standing ticks), else (4) ``backoff`` along the line and creep in
+        again (at most ``max_reentries`` times). A lateral offset too large for the distance
+        left starts with (4)."""
+        f, c = self.cfg.final, self.cfg
+        a, lat, eth = goal_frame_error(pose, self.goal)
+        if self._phase == "lineup":
+            if abs(eth) > f.yaw_tol:
+                return self._turn(eth)
+            self._phase = "creep"
+            if abs(lat) > f.pos_tol and abs(a) < c.final_lookahead * np.log(
+                abs(lat) / (0.5 * f.pos_tol)
+            ):
+                self._start_line(lat)
+        if self._phase == "backoff":
+            if a < self._backoff_to - 0.5 * f.pos_tol:  # back until the goal is that far ahead
+                speed = float(np.clip(f.k_v * (self._backoff_to - a), 4 * c.min_creep, f.max_v))
+                return self._on_line(lat, eth, -1.0, speed)
+            self._phase = "creep"
+        if self._phase == "creep":
+            if abs(a) > 0.5 * f.pos_tol:
+                self._held = []
+                speed = float(np.clip(f.k_v * abs(a), c.min_creep, f.max_v))
+                return self._on_line(lat, eth, float(np.sign(a)), speed)
+            held = self._confirmed(a, lat)
+            if held is None or abs(held[0]) > 0.5 * f.pos_tol:
+                return 0.0, 0.0, False
+            self._phase = "align"
+        if abs(eth) > f.yaw_tol:
+            self._held = []
+            return self._turn(eth)
+        held = self._confirmed(a, lat)
+        if held is None:
+            return 0.0, 0.0, False
+        if np.hypot(*held) <= f.pos_tol or self._reentries >= c.max_reentries:
             return 0.0, 0.0, True
-        w = float(np.clip(f.k_w * err, -f.max_w, f.max_w))
-        if abs(w) < 0.01:
-            w = 0.01 * np.sign(err)
-        return 0.0, w, False
+        self._reentries += 1
+        self._start_line(held[1])
+        return self._final(pose)
+
+    def _turn(self, eth: float) -> tuple[float, float, bool]:
+        """Turn on the spot by ``eth`` (rad): ``w = k_w eth`` within ``[0.01, max_w]``."""
+        f = self.cfg.final
+        w = float(np.clip(f.k_w * eth, -f.max_w, f.max_w))
+        return 0.0, float(w if abs(w) >= 0.01 else 0.01 * np.sign(eth)), False
+
+    def _on_line(
+        self, lat: float, eth: float, direction: float, speed: float
+    ) -> tuple[float, float, bool]:
+        """Pure pursuit along the goal's heading line, facing the goal heading, travelling
+        forward (``direction`` +1) or backward (-1) at ``speed`` m/s. The carrot lies on the
+        line ``L = final_lookahead`` m ahead of the robot's projection in the direction of
+        travel; ``alpha`` is its bearing from the travel heading (``th`` or ``th + pi``),
+        curvature ``k = 2 sin(alpha) / d`` with ``d = hypot(L, lat)``; ``w = speed k``."""
+        f, L = self.cfg.final, self.cfg.final_lookahead
+        # the carrot in the goal frame relative to the robot: (direction L, -lat); the travel
+        # heading in the goal frame: -eth (forward) or -eth + pi (backward)
+        travel = -eth + (0.0 if direction > 0 else np.pi)
+        alpha = float(wrap_angle(np.arctan2(-lat, direction * L) - travel))
+        if abs(alpha) > f.turn_in_place:
+            return 0.0, float(np.clip(f.k_w * alpha, -f.max_w, f.max_w)), False
+        w = speed * 2.0 * np.sin(alpha) / float(np.hypot(L, lat))
+        if abs(w) > f.max_w:
+            speed *= f.max_w / abs(w)
+            w = float(np.sign(w) * f.max_w)
+        return direction * speed, float(w), False
 
     def command(self, pose: Array) -> tuple[float, float, bool]:
         """``(v, w, done)`` for the estimated pose ``[x, y, theta]``."""
         c = self.cfg
         pose = np.asarray(pose, float)
         dist_goal = float(np.hypot(*(self.goal[:2] - pose[:2])))
+        self._last_pose = pose
         if self.final_phase or dist_goal < c.approach_radius:
             self.final_phase = True
             return self._final(pose)

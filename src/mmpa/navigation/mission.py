@@ -23,14 +23,22 @@ from typing import Any, Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from mmpa.errors import UnreachableError
 from mmpa.geometry import Array, wrap_angle
 from mmpa.localization.localizer import Localizer
 from mmpa.localization.maps import OccupancyGrid
-from mmpa.navigation.follower import FollowerConfig, PathFollower
+from mmpa.navigation.follower import FollowerConfig, PathFollower, within_tolerance
 from mmpa.navigation.planner import CostMap, PlannerConfig, plan_path
 from mmpa.robot.interfaces import Base, Lidar
 
-__all__ = ["MobileRobot", "NavigateConfig", "NavigationResult", "localize_standing", "navigate"]
+__all__ = [
+    "MobileRobot",
+    "NavigateConfig",
+    "NavigationResult",
+    "localize_standing",
+    "navigate",
+    "staged_path",
+]
 
 
 class MobileRobot(Protocol):
@@ -86,13 +94,23 @@ class NavigateConfig(BaseModel):
     initial_scans: int = Field(5, ge=0)  # stationary scans before planning
     settle_scans: int = Field(10, ge=0)  # stationary scans after stopping, before re-checking
     max_corrections: int = Field(3, ge=0)
+    # the settled estimate is accepted within settle_scale x the final approach's tolerances
+    # (hysteresis over the estimate's jitter while standing: about +-1 mm in the twin)
+    settle_scale: float = Field(1.5, ge=1.0)
+    # the plan ends with a straight stretch of this length along the goal heading (from a
+    # staging point behind the goal, else in front of it, where free): the base arrives on
+    # the goal's heading line, as a docking approach does; 0: plan to the goal directly
+    staging_distance: float = Field(0.5, ge=0)
     planner: PlannerConfig = PlannerConfig()
     follower: FollowerConfig = FollowerConfig()
 
 
 @dataclass
 class NavigationResult:
-    """Outcome; errors are truth vs goal (parking) and estimate vs truth (localization)."""
+    """Outcome; errors are truth vs goal (parking) and estimate vs truth (localization).
+    ``reason`` says why a drive did not reach (empty when it did), ``corrections`` counts the
+    re-approaches after a settle check, ``settled_estimate`` is the estimate the last settle
+    check judged (NaN if none ran)."""
 
     reached: bool
     goal: Array
@@ -101,6 +119,14 @@ class NavigationResult:
     sim_time: float
     path: Array
     trace: dict[str, Array] = field(default_factory=dict)
+    reason: str = ""
+    corrections: int = 0
+    settled_estimate: Array = field(default_factory=lambda: np.full(3, np.nan))
+
+    @property
+    def settle_error_xy(self) -> float:
+        """Distance (m) of the settled estimate from the goal: what the robot believes."""
+        return float(np.hypot(*(self.settled_estimate[:2] - self.goal[:2])))
 
     @property
     def parking_error_xy(self) -> float:
@@ -115,6 +141,44 @@ class NavigationResult:
         """``[ex, ey, e_theta]`` of the final estimate against the truth."""
         e = self.final_estimate - self.final_truth
         return np.array([e[0], e[1], float(wrap_angle(e[2]))])
+
+
+def _segment_free(cm: CostMap, p0: Array, p1: Array) -> bool:
+    """Whether the straight segment ``p0 -> p1`` crosses no lethal or inscribed cell (the
+    goal's own cell may be inscribed: a robot parked at a desk)."""
+    g = cm.grid
+    n = max(2, int(np.ceil(np.linalg.norm(p1 - p0) / (0.5 * g.resolution))) + 1)
+    pts = np.linspace(p0, p1, n)[:-1]
+    c, r = g.world_to_cell(pts)
+    c, r = np.asarray(c, int), np.asarray(r, int)
+    if np.any((c < 0) | (c >= g.width) | (r < 0) | (r >= g.height)):
+        return False
+    cost = cm.cost[r, c]
+    near_goal = np.linalg.norm(pts - p1, axis=1) <= cm.cfg.endpoint_clearance
+    return bool(np.all((cost < 253.0) | (near_goal & (cost < 254.0))))
+
+
+def staged_path(
+    cm: CostMap, start: Array, goal: Array, staging: float, cfg: PlannerConfig | None = None
+) -> Array:
+    """A plan (K, 2) from ``start`` to ``goal`` = ``[x, y, theta]`` whose last stretch runs
+    ``staging`` m along the goal heading ``h``: through the staging point ``goal - staging h``
+    (driving in forward), else ``goal + staging h`` (backing in), whichever is free with a
+    free straight stretch to the goal; else (or when ``start`` is within ``2 staging`` of the
+    goal: a short re-park) the plain plan to the goal."""
+    goal = np.asarray(goal, float)
+    if staging > 0 and np.hypot(*(np.asarray(start[:2], float) - goal[:2])) > 2 * staging:
+        h = np.array([np.cos(goal[2]), np.sin(goal[2])])
+        for side in (1.0, -1.0):
+            st = goal[:2] - side * staging * h
+            if not _segment_free(cm, st, goal[:2]):
+                continue
+            try:
+                path = plan_path(cm, start, st, cfg)
+            except UnreachableError:
+                continue
+            return np.vstack([path, goal[:2]])
+    return plan_path(cm, start, goal[:2], cfg)
 
 
 def navigate(
@@ -178,12 +242,15 @@ def navigate(
 
     est = stationary(cfg.initial_scans) if cfg.initial_scans else sense(force=True)
     cm = costmap or CostMap(grid, cfg.planner)
-    path = plan_path(cm, est[:2], goal[:2], cfg.planner)
+    path = staged_path(cm, est[:2], goal, cfg.staging_distance, cfg.planner)
     follower = PathFollower(path, goal, cfg.follower)
     total = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1))) or 1.0
     reached = False
     corrections = 0
+    settled = np.full(3, np.nan)
+    reason = f"navigation timed out after {cfg.timeout:g} s"
     final_t0: float | None = None
+    fin = cfg.follower.final
     while world.time - t0 < cfg.timeout:
         if tick % scan_every == 0:
             sense()
@@ -192,19 +259,17 @@ def navigate(
         if follower.final_phase and final_t0 is None:
             final_t0 = world.time
         if final_t0 is not None and world.time - final_t0 > cfg.follower.final_timeout:
-            world.base.stop()
+            reason = f"the final approach timed out after {cfg.follower.final_timeout:g} s"
             break
         if done:
-            est = stationary(cfg.settle_scans)
-            ok = (
-                np.hypot(*(est[:2] - goal[:2])) <= cfg.follower.final.pos_tol * 1.5
-                and abs(wrap_angle(est[2] - goal[2])) <= cfg.follower.final.yaw_tol * 1.5
-            )
+            settled = est = stationary(cfg.settle_scans)
+            ok = within_tolerance(est, goal, fin, cfg.settle_scale)
             if ok or corrections >= cfg.max_corrections:
                 reached = bool(ok)  # corrections used up out of tolerance: not reached
+                reason = "" if ok else f"not settled after {corrections} corrections"
                 break
             corrections += 1
-            follower.restart_final()
+            follower.restart_final(est)
             continue
         world.base.set_velocity(v, w)
         advance()
@@ -213,6 +278,14 @@ def navigate(
     world.base.stop()
     world.step(0.2)
     final_est = localizer.pose_at(world.odometry.odometry().pose)
+    if not reached:  # how far, by the robot's own estimate, against which tolerance
+        e = final_est - goal
+        reason += (
+            f": the estimate is {1000 * np.hypot(e[0], e[1]):.1f} mm / "
+            f"{np.rad2deg(abs(wrap_angle(e[2]))):.2f} deg from the goal (tolerance "
+            f"{1000 * cfg.settle_scale * fin.pos_tol:.1f} mm / "
+            f"{np.rad2deg(cfg.settle_scale * fin.yaw_tol):.2f} deg)"
+        )
     return NavigationResult(
         reached=reached,
         goal=goal,
@@ -221,4 +294,7 @@ def navigate(
         sim_time=world.time - t0,
         path=path,
         trace={k: np.asarray(v) for k, v in trace.items()},
+        reason=reason,
+        corrections=corrections,
+        settled_estimate=settled,
     )
