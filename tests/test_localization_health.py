@@ -265,3 +265,42 @@ def test_no_false_alarm_on_a_twin_drive() -> None:
     assert res.reached
     good = [ok for ok, err in rec if err < 0.2]
     assert len(good) > 300 and all(good)
+
+
+def test_reflector_fix_far_from_the_estimate_is_flagged(room) -> None:
+    """A reflector method whose estimate follows the walls while its reflector fixes lie 1 m
+    away (walls and reflector survey disagree): "inconsistent map" once the median of 3
+    fixes exceeds ``fix_disagree``; fixes at the estimate raise nothing."""
+    from types import SimpleNamespace
+
+    from mmpa.localization.amcl import PoseEstimate
+    from mmpa.localization.monitor import MonitoredLocalizer
+
+    g, P, scans = room
+
+    class Stub:
+        name = "stub"
+
+        def __init__(self, offset: float) -> None:
+            self.offset, self.pose, self.last_fix = offset, P[0], None
+
+        def initialize(self, pose, cov=None) -> None:
+            self.pose = pose
+
+        def update(self, odom, scan, force=False):
+            self.pose = odom
+            self.last_fix = SimpleNamespace(pose=odom + np.array([self.offset, 0.0, 0.0]))
+            return PoseEstimate(odom, np.eye(3) * 1e-4, 0, True, "enhanced")
+
+        def pose_at(self, odom):
+            return odom
+
+    for offset, flagged in ((0.02, False), (1.0, True)):
+        loc = MonitoredLocalizer(Stub(offset), g, np.zeros(3))
+        loc.initialize(P[0])
+        est = [loc.update(o, s) for o, s in zip(P, scans, strict=True)]
+        bad = [i for i, e in enumerate(est) if not e.ok]
+        assert bool(bad) == flagged, [e.reason for e in est]
+        if flagged:
+            assert bad[0] == 2 and "inconsistent map" in est[2].reason
+            assert est[2].health.fix_window == pytest.approx(1.0)

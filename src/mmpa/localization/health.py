@@ -53,9 +53,13 @@ class HealthConfig(BaseModel):
     explain_angle: float = Field(np.deg2rad(1.0), ge=0)
     #: updates in the window the decision looks at (median of the explained shares)
     window: int = Field(5, ge=1)
-    #: the window median of the explained share below which the localizer says "lost"
+    #: the window median of the explained share below which the localizer says "lost".
+    #: Measured at err < 0.2 m (AMCL, benchmarks/audit_lost.py): twin drives >= 0.97; real
+    #: CARMEN logs min (1st percentile) intel 0.88 (0.95), csail 0.69 (0.72), freiburg 0.64
+    #: (0.93); faults: scale2/reversed/mirrored maps 0.2-0.45, another building 0.3-0.77
     lost_below: float = Field(0.5, ge=0, le=1)
-    #: ... and above which a lost localizer is trusted again (hysteresis)
+    #: ... and above which a lost localizer is trusted again (hysteresis; recovering also
+    #: needs the crossed window <= ``crossed_above``: real logs at err < 0.2 m reach 0.39)
     recover_above: float = Field(0.6, ge=0, le=1)
     #: fewer valid beams than this: no judgement of the explained share this update
     min_beams: int = Field(10, ge=1)
@@ -86,11 +90,18 @@ class HealthConfig(BaseModel):
     #: m and rad, a beam crossing a wall this far before its endpoint saw through it
     cross_margin: float = Field(0.3, ge=0)
     cross_angle: float = Field(np.deg2rad(1.0), ge=0)
-    #: the window median of the crossed share above which the localizer says "lost"
+    #: the window median of the crossed share above which the localizer says "lost".
+    #: Measured at err < 0.2 m: twin <= 0.06; real logs max intel 0.33, csail 0.36,
+    #: freiburg 0.39 (margin 0.06); AMCL diverged on freiburg (err > 1 m): 0.5-0.7
     crossed_above: float = Field(0.45, ge=0, le=1)
     #: an alternative reading explaining this much more (window medians) says the input is
     #: inconsistent
     alt_margin: float = Field(0.3, ge=0, le=1)
+    #: m, reflector methods: the window median distance between the reflector fix and the
+    #: estimate above which the map's walls and its reflector survey disagree. Measured:
+    #: consistent maps < 0.1 (the fix is fused); walls shifted 1-3 m or another building:
+    #: 1-1.5 (EnhancedAMCL's laser term pulls the estimate onto the wrong walls)
+    fix_disagree: float = Field(0.5, gt=0)
 
 
 @dataclass(frozen=True)
@@ -103,7 +114,9 @@ class Health:
     wall of the map at the best pose near the estimate, ``crossed_window`` its window
     median; ``alternative`` the reading of the scan that explains
     the map best when that beats the scan as given ("mirrored", "ranges x 0.5", ... or ''),
-    ``alternative_gain`` its window median gain in explained share; ``beams`` the valid
+    ``alternative_gain`` its window median gain in explained share; ``fix_offset`` m the
+    distance from this update's reflector fix to the estimate (NaN: no fix), ``fix_window``
+    its median over the last fixes; ``beams`` the valid
     beams judged; ``spread_xy`` m the position spread (NaN where the method has no
     particles); ``odom_ok`` False when this update's odometry increment was implausible
     (and refused); ``scan_ok`` False when the scan's fields are inconsistent (NaN/negative
@@ -115,6 +128,8 @@ class Health:
     crossed_window: float = float("nan")
     alternative: str = ""
     alternative_gain: float = 0.0
+    fix_offset: float = float("nan")
+    fix_window: float = float("nan")
     beams: int = 0
     spread_xy: float = float("nan")
     odom_ok: bool = True

@@ -17,7 +17,11 @@ Per :meth:`MonitoredLocalizer.update`:
    ``window`` updates; with a full window, a median below ``lost_below`` says "lost" until
    the median rises above ``recover_above`` (hysteresis: one scan blocked by people does not
    raise the alarm, a wrong unit, mirrored angles or another building's map do within
-   ``window / 2 + 1`` updates); a particle spread above ``spread_max`` says "lost" too.
+   ``window / 2 + 1`` updates); a particle spread above ``spread_max`` says "lost" too;
+4. reflector methods (``inner.last_fix``): a window median distance from the reflector fix
+   to the estimate above ``fix_disagree`` says "inconsistent map" (the scan's walls and the
+   map's reflector survey disagree: EnhancedAMCL's laser term can pull the estimate onto
+   the walls of a wrong map where they explain the scan well, 1-1.5 m from the fix).
 
 Any ``ok=False``/``reason`` of the wrapped localizer (Hector's rejected matches) is kept.
 Attributes the wrapper does not define are the wrapped localizer's (``loc.particles``,
@@ -87,6 +91,7 @@ class MonitoredLocalizer:
         self._shares: deque[float] = deque(maxlen=self.health_cfg.window)
         self._alts: deque[tuple[str, float]] = deque(maxlen=self.health_cfg.window)
         self._crossed: deque[float] = deque(maxlen=self.health_cfg.window)
+        self._fix_offsets: deque[float] = deque(maxlen=self.health_cfg.window)
         self._lost = False
         self._fix = np.zeros(3)  # SE(2) correction applied to the raw odometry
         self._raw_prev: Array | None = None
@@ -203,7 +208,9 @@ class MonitoredLocalizer:
             alts[f"ranges x {f:g}"] = (r * f, a)
         best, best_share = "", -1.0
         for name, (ra, aa) in alts.items():
-            ok = np.isfinite(ra) & (ra <= scan.range_max)
+            # beams shorter than 2 explain_dist are "explained" by any wall the robot stands
+            # next to (ranges x 0.01 would collapse the scan onto the nearest wall)
+            ok = np.isfinite(ra) & (ra > 2 * c.explain_dist) & (ra <= scan.range_max)
             sh = self._share(pose, ra[ok], aa[ok])[0] * ok.mean() if ok.any() else 0.0
             if sh > best_share:
                 best, best_share = name, sh
@@ -224,7 +231,7 @@ class MonitoredLocalizer:
         cross = float(np.median(self._crossed)) if self._crossed else float("nan")
         if len(self._shares) == c.window:
             bad = window < c.lost_below or cross > c.crossed_above
-            good = window > c.recover_above and cross < 0.75 * c.crossed_above
+            good = window > c.recover_above and cross <= c.crossed_above
             if not self._lost and bad:
                 self._lost = True
             elif self._lost and good:
@@ -235,6 +242,30 @@ class MonitoredLocalizer:
         top = max(set(names), key=names.count)
         gain = float(np.median([g if n == top else 0.0 for n, g in self._alts]))
         return window, cross, top, gain
+
+    def _fix_check(self, est: PoseEstimate) -> tuple[float, float, str]:
+        """Reflector methods: the distance from this update's reflector fix to the estimate,
+        its median over the last ``window`` fixes (NaN before 3), and the reason to say
+        ``ok=False`` when that median exceeds ``fix_disagree`` ('' if not)."""
+        fix = getattr(self.inner, "last_fix", None)
+        off = float("nan")
+        if fix is not None and np.all(np.isfinite(est.pose)):
+            off = float(np.hypot(*(np.asarray(fix.pose)[:2] - est.pose[:2])))
+            self._fix_offsets.append(off)
+        if len(self._fix_offsets) < min(3, self.health_cfg.window):
+            return off, float("nan"), ""
+        med = float(np.median(self._fix_offsets))
+        if med <= self.health_cfg.fix_disagree:
+            return off, med, ""
+        return (
+            off,
+            med,
+            (
+                f"inconsistent map: the reflector fix lies {med:.2f} m from the estimate (median "
+                f"of the last {len(self._fix_offsets)} fixes, at most {self.health_cfg.fix_disagree}"
+                " m): the scan's walls and the map's reflector survey disagree"
+            ),
+        )
 
     def _judge(self, est: PoseEstimate, pose: Array, scan: LaserScan) -> tuple[Health, list[str]]:
         """The health at ``pose`` after this update and the reasons to say ``ok=False``."""
@@ -265,6 +296,9 @@ class MonitoredLocalizer:
                 f"its walls (medians of the last {len(self._shares)} updates; lost below "
                 f"{c.lost_below:.0%} or above {c.crossed_above:.0%})"
             )
+        fix_off, fix_win, why = self._fix_check(est)
+        if why:
+            reasons.append(why)
         spread = position_spread(est.cov) if est.n_particles > 0 else float("nan")
         if spread > c.spread_max:
             reasons.append(f"lost: particle spread {spread:.2f} m > {c.spread_max} m")
@@ -275,6 +309,8 @@ class MonitoredLocalizer:
             crossed_window=cross,
             alternative=alt if gain > 0 else "",
             alternative_gain=gain,
+            fix_offset=fix_off,
+            fix_window=fix_win,
             beams=n,
             spread_xy=spread,
             odom_ok=odom_ok,
