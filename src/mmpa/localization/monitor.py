@@ -257,15 +257,13 @@ class MonitoredLocalizer:
         med = float(np.median(self._fix_offsets))
         if med <= self.health_cfg.fix_disagree:
             return off, med, ""
-        return (
-            off,
-            med,
-            (
-                f"inconsistent map: the reflector fix lies {med:.2f} m from the estimate (median "
-                f"of the last {len(self._fix_offsets)} fixes, at most {self.health_cfg.fix_disagree}"
-                " m): the scan's walls and the map's reflector survey disagree"
-            ),
+        n, lim = len(self._fix_offsets), self.health_cfg.fix_disagree
+        why = (
+            f"inconsistent map: the reflector fix lies {med:.2f} m from the estimate (median "
+            f"of the last {n} fixes, at most {lim} m): the scan's walls and the map's "
+            "reflector survey disagree"
         )
+        return off, med, why
 
     def _judge(self, est: PoseEstimate, pose: Array, scan: LaserScan) -> tuple[Health, list[str]]:
         """The health at ``pose`` after this update and the reasons to say ``ok=False``."""
