@@ -86,7 +86,9 @@ def _table(rows: list[dict]) -> None:
         ("sim_s", "drive time (sim s)"),
     ):
         v = np.array([r[key] for r in rows], float)
-        print(f"{label:<26}" + "".join(f"{np.percentile(v, q):9.2f}" for q in qs) + f"{v.mean():9.2f}")
+        print(
+            f"{label:<26}" + "".join(f"{np.percentile(v, q):9.2f}" for q in qs) + f"{v.mean():9.2f}"
+        )
     print(f"\n{'pair':<10}{'n':>4}{'reached':>9}{'park p50':>10}{'park max':>10}")
     for a, b in PAIRS:
         sub = [r for r in rows if (r["from"], r["to"]) == (a, b)]

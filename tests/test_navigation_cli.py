@@ -21,9 +21,14 @@ def test_navigate_prints_parking_error(tmp_path) -> None:
     assert "parking_error_xy_mm" in res.output
     s = json.loads((tmp_path / "summary.json").read_text())
     # realistic profile (the default), started from the operator's rough pose (0.2 m, 10 deg):
-    # 5.6 mm parking and 9.7 mm localization error measured (reference: < 6 mm localization)
+    # 8-9 mm localization error measured (DESIGN.md: 1.5-9.3 mm for this twin; reference
+    # < 6 mm). This drive (seed 0, site 0 -> 2) ended 'not settled' on an AVX2 machine before
+    # the final approach ran along the goal line; now it settles (200 seeded drives:
+    # benchmarks/bench_drives.py), so the parking error is bounded by the localization error
+    # plus the settle tolerance (4.5 mm, + 0.5 mm for the last step): no margin on the CPU
     assert s["profile"] == "realistic"
-    assert s["reached"] and s["parking_error_xy_mm"] < 10 and s["localization_error_xy_mm"] < 20
+    assert s["reached"] and s["localization_error_xy_mm"] < 20
+    assert s["parking_error_xy_mm"] <= s["localization_error_xy_mm"] + 5.0
     # --record: the drive as a ROS 2 bag (the run itself unchanged: the recorder only observes)
     from mmpa.backends.bag import bag_topics
 

@@ -118,12 +118,15 @@ def navigate_cmd(
         "method": method,
         "profile": errors.profile,
         "reached": res.reached,
+        "corrections": res.corrections,
         "sim_seconds": round(res.sim_time, 2),
         "parking_error_xy_mm": round(1000 * res.parking_error_xy, 2),
         "parking_error_yaw_deg": round(float(np.rad2deg(res.parking_error_yaw)), 3),
         "localization_error_xy_mm": round(1000 * float(np.hypot(e[0], e[1])), 2),
         "localization_error_yaw_deg": round(float(np.rad2deg(abs(e[2]))), 3),
     }
+    if not res.reached:
+        summary["reason"] = res.reason
     if refl_map is not None:
         summary["reflector_map"] = str(refl_map)
     if bag is not None:
@@ -137,7 +140,7 @@ def navigate_cmd(
         t.add_row(k, str(v))
     console.print(t)
     if not res.reached:
-        console.print("[yellow]the base did not settle within tolerance before the timeout[/]")
+        console.print(f"[yellow]not reached: {res.reason}[/]")
         raise typer.Exit(1)
 
 
