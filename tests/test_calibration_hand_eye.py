@@ -178,8 +178,16 @@ def test_joint_calibration_recovers_hand_eye_and_kinematics() -> None:
     assert res.success and res.rms_px < 0.3 and res.rms_px_start > 2.0  # 2D RMS: 0.2 sqrt 2
     E6 = last_link_error(dh, dh_true)
     et, er = pose_error(res.T_flange_camera, E6 @ X_true)
-    # measured 0.06 mm, 0.005 deg; posterior SD ~0.15 mm along the optical axis
-    assert et < 0.3 and er < 0.02, (et, er)
+    # within 3 posterior SDs (norm of the per-axis SDs: 0.18 mm, 0.010 deg). The optical
+    # axis is weakly observed (SD 0.17 mm): where the solver stops along it depends on the
+    # CPU's rounding (issue 32): 0.26 mm / 0.012 deg with AVX512, 0.31 mm / 0.005 deg with
+    # numpy's AVX512 kernels off and one BLAS thread; the old bound (0.3 mm) sat in between
+    sd_t, sd_r = (
+        float(np.linalg.norm(res.hand_eye_sd_mm)),
+        float(np.linalg.norm(res.hand_eye_sd_deg)),
+    )
+    assert 0.1 < sd_t < 0.3 and sd_r < 0.02  # the posterior itself is stable (0.177 / 0.0101)
+    assert et < 3 * sd_t and er < 3 * sd_r, (et, er, sd_t, sd_r)
     nt, nr = pose_error(X_nom, E6 @ X_true)
     assert nt > 1.0 and nr > 0.3  # there was something to find
     # the 8 unobservable DH directions keep their prior SD, the rest are learnt

@@ -226,6 +226,10 @@ def test_resume_refuses_another_configuration(tmp_path):
         run_experiment("ipe", tmp_path, trials=1, overrides=OVERRIDES, resume=True)
 
 
+# slow (28 s on an idle machine, 480 s beside a busy core: Ray's start-up); the default run
+# keeps Ray executing jobs (test_ray_workers_run_single_threaded_and_leave_the_environment)
+# and the rows being the same on worker processes (test_two_workers_give_the_rows_of_one)
+@pytest.mark.slow
 def test_ray_gives_the_rows_of_one_process(serial_run, tmp_path):
     pytest.importorskip("ray")  # the dev extra has it
     from mmpa.experiments.runner import run_experiment

@@ -51,6 +51,9 @@ def test_wheel_carries_the_licence_and_the_data(wheel: Path) -> None:
     assert not any(n.startswith("tests/") for n in names)
 
 
+# slow (30 s: a venv and a pip install of every dependency); the default run keeps
+# test_wheel_carries_the_licence_and_the_data (the same wheel, its files and metadata)
+@pytest.mark.slow
 def test_wheel_installs_and_runs_in_a_clean_venv(wheel: Path, tmp_path: Path) -> None:
     venv = tmp_path / "venv"
     _run([sys.executable, "-m", "venv", str(venv)], cwd=tmp_path)

@@ -211,6 +211,10 @@ def test_a_grasp_cell_run_alone_repeats_its_trials_in_the_full_table(tmp_path):
         run_experiment("grasp", tmp_path / "bad", trials=1, overrides=["lighting=[twilight]"])
 
 
+# slow (20 s: two tracking runs, one on two workers); the default run keeps per-trial seeding
+# of the servo experiments (test_a_grasp_cell_run_alone_repeats_its_trials_in_the_full_table)
+# and the same rows on worker processes (test_executor.py: test_two_workers_give_the_rows_of_one)
+@pytest.mark.slow
 def test_a_tracking_trial_is_the_same_alone_and_on_two_workers(tmp_path):
     """Tracking trials are seeded per speed and trial (``set_episode`` for the sensors): the
     0.1 m/s trial run alone in this process is the same, to the float, as inside a run of
