@@ -238,6 +238,35 @@ def test_robot_file_reflector_map_entry(tmp_path) -> None:
         load_robot(bad)
 
 
+def test_twin_survey_cli_short_drive(tmp_path) -> None:
+    """``mmpa calibrate reflectors`` on a short drive (site 0 -> 1, a stop every 5 m, 3 scans
+    per stop): the CLI writes a reflector map and a robot file that load, finds most of the
+    twin's 9 reflectors (measured 7, 2 missed) and none spurious, within a loose bound
+    (measured 4.6 mm mean, 5.6 max; the full survey's 3 mm target is
+    test_twin_survey_cli_against_truth, slow)."""
+    from mmpa.cli.main import app
+    from mmpa.localization.reflector_map import load_reflector_map
+    from mmpa.robot.robot_file import load_robot, robot_reflector_map
+
+    out = tmp_path / "survey"
+    args = ["calibrate", "reflectors", "--out", str(out), "--route", "1", "--scans", "3"]
+    args += ["--spacing", "5"]
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0, r.output
+    s = json.loads((out / "summary.json").read_text())
+    assert s["found"] + s["missed"] == 9 and s["found"] >= 5 and s["spurious"] == 0
+    assert s["error_mean_mm"] < 10.0 and s["error_max_mm"] < 20.0
+    rm = load_reflector_map(out / "reflectors.yaml")
+    true = np.array([r["true"] for r in s["reflectors"]])
+    assert match_reflectors(rm.xy, true).errors.mean() * 1e3 == pytest.approx(s["error_mean_mm"])
+    load_robot(out / "robot.yaml")
+    assert robot_reflector_map(out / "robot.yaml") == out / "reflectors.yaml"
+
+
+# slow (26 s: 7 stops of 30 scans); the default run keeps the CLI on a short drive
+# (test_twin_survey_cli_short_drive) and the drive over the protocols
+# (test_protocols_only.py: test_reflector_survey_drive_over_protocols_only)
+@pytest.mark.slow
 def test_twin_survey_cli_against_truth(tmp_path) -> None:
     """The survey drive (site 0 -> 1 -> 2 -> 0, 7 stops of 30 scans, intensity-centroid
     bearings) under `realistic`, seed 0: every true reflector found, none spurious, and the

@@ -403,6 +403,10 @@ def test_twin_recovers_hand_eye_without_dh_error(tmp_path) -> None:
     assert s["stations_used"] == 8
 
 
+# slow (16.5 s: 40 rendered views and the joint fit); the default run keeps the same
+# procedure writing a robot file (test_examples.py: test_hand_eye_on_your_robot), the joint
+# fit against a synthetic truth, the twin run without DH error, and the CLI's refusals
+@pytest.mark.slow
 def test_cli_hand_eye_realistic(tmp_path) -> None:
     """``mmpa calibrate hand-eye`` at its defaults (joint method, 40 stations at 0.32-0.62 m,
     tilts to 45 deg), realistic seed 0, against the twin's truth. The last DH link's error E6

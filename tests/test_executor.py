@@ -158,6 +158,10 @@ def serial_run(tmp_path_factory):
     return out
 
 
+# slow (10 s: IPE taught anew); the default run keeps per-trial seeding of a real experiment
+# (test_servo_twin.py: test_a_grasp_cell_run_alone_repeats_its_trials_in_the_full_table,
+# test_localization_experiments.py: test_kidnap_trial_does_not_depend_on_what_ran_before)
+@pytest.mark.slow
 def test_a_trial_alone_gives_its_row_of_the_full_run(serial_run):
     from mmpa.experiments import mmpa_ipe
     from mmpa.experiments.mmpa_common import TrialGroup, run_trial_groups

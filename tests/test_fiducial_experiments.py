@@ -10,6 +10,10 @@ import pytest
 from mmpa.experiments.runner import run_experiment
 
 
+# slow (13 s: six passes on two workers, one again alone); the default run keeps the passes
+# against the twin's truth (test_fiducial_twin.py) and the same rows on worker processes
+# (test_executor.py: test_two_workers_give_the_rows_of_one)
+@pytest.mark.slow
 def test_fiducial_search_experiment_small(tmp_path) -> None:
     """Six passes on two worker processes (``--workers 2``); every pass draws from its own
     seed (``[seed, rep, speed, study]``), so the spiral pass at 3 cm/s run alone in this

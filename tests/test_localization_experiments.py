@@ -37,6 +37,10 @@ def test_localization_experiment_small(tmp_path) -> None:
     assert err == pytest.approx(out.rows[0]["err_pos_m"], abs=1e-6)
 
 
+# slow (14 s: a dropout run of two methods, recorded); the default run keeps a dropout
+# trial of the methods (test_dropout_trial_does_not_depend_on_the_other_methods) and a
+# recorded trial checked against its row (test_localization_experiment_small)
+@pytest.mark.slow
 def test_reflector_dropout_small(tmp_path) -> None:
     """A dropout run on a short route, recorded (``--record``): trilateration loses the robot
     while people hide the reflectors, the enhanced AMCL does not; the bag's estimates of the

@@ -212,6 +212,10 @@ def test_cli_teach_run_and_missing_task(tmp_path):
     assert r.exit_code == 2 and "site" in r.output
 
 
+# slow (20 s: the scenes experiment); the default run keeps the refusal of a pure colour
+# plane and the acceptance of a textured one (test_registration.py:
+# test_pure_color_plane_is_refused_textured_plane_is_not)
+@pytest.mark.slow
 def test_scenes_ablation_refuses_the_pure_color_plane(tmp_path):
     """Table A.7's pattern: no pose from a plain plane, a good one from textured geometry."""
     from mmpa.experiments.runner import run_experiment

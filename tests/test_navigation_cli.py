@@ -29,6 +29,9 @@ def test_navigate_prints_parking_error(tmp_path) -> None:
     assert s["profile"] == "realistic"
     assert s["reached"] and s["localization_error_xy_mm"] < 20
     assert s["parking_error_xy_mm"] <= s["localization_error_xy_mm"] + 5.0
+    # the localizer's health over the drive: no false alarm where the estimate is right (the
+    # map explains >= 0.97 of the beams on the twin's drives against the 0.5 'lost' level)
+    assert s["localization_updates_not_ok"] == 0 and s["localization_explained_min"] > 0.8
     # --record: the drive as a ROS 2 bag (the run itself unchanged: the recorder only observes)
     from mmpa.backends.bag import bag_topics
 

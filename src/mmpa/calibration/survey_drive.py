@@ -138,6 +138,7 @@ def survey_drive(
     lidar mount ``laser_pose`` ``[x, y, yaw]`` in ``base_link``. ``truth()`` (evaluation
     only; never steers) gives the base's true pose per stop. Raises
     :class:`~mmpa.errors.InvalidInputError` on a malformed mount or station."""
+    from mmpa.navigation.follower import FollowerConfig
     from mmpa.navigation.mission import NavigateConfig, navigate
 
     cfg = cfg or SurveyDriveConfig()
@@ -150,8 +151,17 @@ def survey_drive(
         if st.shape != (3,) or not np.isfinite(st).all():
             raise InvalidInputError(f"station {k} must be a finite [x, y, theta], got {st!r}")
     sdf = signed_distance_map(grid.occupied, grid.resolution) if cfg.map_match else None
-    nav = NavigateConfig(timeout=cfg.leg_timeout, initial_scans=0, settle_scans=3)
-    nav = nav.model_copy(update={"max_corrections": 0})
+    # a survey stop needs a pose estimate, not a precise park: 2 cm / 2 deg, no staging
+    # stretch (the stops lie on the path, 1 m apart), no re-approach
+    fin = FollowerConfig().final.model_copy(update={"pos_tol": 0.02, "yaw_tol": np.deg2rad(2.0)})
+    nav = NavigateConfig(
+        timeout=cfg.leg_timeout,
+        initial_scans=0,
+        settle_scans=3,
+        max_corrections=0,
+        staging_distance=0.0,
+        follower=FollowerConfig(final=fin),
+    )
     det_cfg = cfg.detection
     points: list[Array] = []
     pose_idx: list[int] = []

@@ -125,6 +125,11 @@ def navigate_cmd(
         "localization_error_xy_mm": round(1000 * float(np.hypot(e[0], e[1])), 2),
         "localization_error_yaw_deg": round(float(np.rad2deg(abs(e[2]))), 3),
     }
+    ok, expl = res.trace.get("ok", np.ones(0, bool)), res.trace.get("explained", np.zeros(0))
+    # the localizer's health over the drive (mmpa.localization.health)
+    summary["localization_updates_not_ok"] = int(np.sum(~ok.astype(bool)))
+    if np.isfinite(expl).any():
+        summary["localization_explained_min"] = round(float(np.nanmin(expl)), 3)
     if not res.reached:
         summary["reason"] = res.reason
     if refl_map is not None:

@@ -209,14 +209,24 @@ def navigate(
     dt = 1.0 / cfg.control_rate
     scan_every = max(1, round(cfg.control_rate / cfg.scan_rate))
     t0 = world.time
-    trace: dict[str, list[Any]] = {"t": [], "truth": [], "estimate": [], "reflectors": []}
+    trace: dict[str, list[Any]] = {
+        "t": [],
+        "truth": [],
+        "estimate": [],
+        "reflectors": [],
+        "ok": [],
+        "explained": [],
+    }
     tick = 0
 
     def sense(force: bool = False) -> Array:
         odom = world.odometry.odometry().pose
         scan = world.lidar.scan()
-        localizer.update(odom, scan, force=force)
+        pe = localizer.update(odom, scan, force=force)
         est = localizer.pose_at(odom)
+        # the localizer's own verdict (mmpa.localization.health): ok and the explained share
+        trace["ok"].append(bool(getattr(pe, "ok", True)))
+        trace["explained"].append(float(getattr(getattr(pe, "health", None), "explained", np.nan)))
         trace["t"].append(world.time - t0)
         trace["truth"].append(truth_pose() if truth_pose else no_truth)  # evaluation only
         trace["estimate"].append(est)
