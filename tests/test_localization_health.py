@@ -237,8 +237,9 @@ def test_bare_localizers_and_methods_list() -> None:
 @pytest.mark.slow
 def test_no_false_alarm_on_a_twin_drive() -> None:
     """A realistic twin drive (site 0 -> 2, AMCL from the operator's rough pose): no
-    ok=False while the error is < 0.2 m (measured: 0 of ~390; the first updates, 0.39 m
-    off before the filter moves, are flagged)."""
+    ok=False while the error is < 0.2 m (measured: 0 of 188 with the final approach along the
+    goal line, 0 of ~390 before; the first updates, 0.39 m off before the filter moves, are
+    flagged)."""
     from mmpa.navigation.mission import NavigateConfig, navigate
     from mmpa.navigation.planner import CostMap
     from mmpa.sim.operator import rough_initial_pose
@@ -264,7 +265,7 @@ def test_no_false_alarm_on_a_twin_drive() -> None:
         res = navigate(world, loc, grid, goal, NavigateConfig(timeout=60.0), costmap=cm)
     assert res.reached
     good = [ok for ok, err in rec if err < 0.2]
-    assert len(good) > 300 and all(good)
+    assert len(good) > 150 and all(good)
 
 
 def test_reflector_fix_far_from_the_estimate_is_flagged(room) -> None:
