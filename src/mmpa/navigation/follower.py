@@ -37,7 +37,7 @@ class FollowerConfig(BaseModel):
     backoff: float = Field(0.05, gt=0)  # m
     min_creep: float = Field(0.004, gt=0)  # m/s: the slowest creep (a base's deadband)
     confirm_ticks: int = Field(4, ge=1)  # standing ticks averaged before a phase decision
-    max_reentries: int = Field(3, ge=0)  # back-offs and align -> position re-entries allowed
+    max_reentries: int = Field(3, ge=0)  # back-off and creep-in cycles allowed
     final_timeout: float = Field(60.0, gt=0)  # s in the final approach before giving up
     final: GoToPoseConfig = GoToPoseConfig(
         k_v=0.6, k_w=1.5, max_v=0.08, max_w=0.3, turn_in_place=0.35, pos_tol=0.003, yaw_tol=0.003
