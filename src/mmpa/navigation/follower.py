@@ -88,7 +88,6 @@ class PathFollower:
         self._reentries = 0
         self._backoff_to = self.cfg.backoff
         self._held: list[tuple[float, float]] = []
-        self._last_pose = self.goal
 
     def _project(self, xy: Array) -> float:
         best, best_s = np.inf, self._progress
@@ -112,25 +111,29 @@ class PathFollower:
         t = 0.0 if L < 1e-9 else (s - self._s[i]) / L
         return self.path[i] + t * (self.path[i + 1] - self.path[i])
 
-    def restart_final(self, pose: Array | None = None) -> None:
+    def restart_final(self, pose: Array) -> None:
         """One more back-off and creep along the goal line, then the heading (after the
-        caller's settle check found the settled estimate off tolerance). Not limited by
-        ``max_reentries``: the caller bounds its own corrections."""
-        ref = self._last_pose if pose is None else np.asarray(pose, float)
-        self._start_line(goal_frame_error(ref, self.goal)[1])
+        caller's settle check found the settled estimate ``pose`` off tolerance). Not limited
+        by ``max_reentries``: the caller bounds its own corrections."""
+        self._start_line(goal_frame_error(np.asarray(pose, float), self.goal)[1])
 
     @property
     def phase(self) -> str:
         """The final approach's phase: ``lineup``, ``creep``, ``align`` or ``backoff``."""
         return self._phase
 
-    def _start_line(self, lat: float = 0.0) -> None:
+    def _line_needed(self, lat: float) -> float:
+        """The distance (m) along the goal line over which pure pursuit brings the lateral
+        offset ``lat`` down to ``pos_tol / 2``: ``s = L ln(|lat| / (pos_tol / 2))``."""
+        half_tol = 0.5 * self.cfg.final.pos_tol
+        return self.cfg.final_lookahead * float(np.log(max(abs(lat), 1e-9) / half_tol))
+
+    def _start_line(self, lat: float) -> None:
         """Back off along the goal line far enough that pure pursuit removes the lateral
-        offset ``lat`` on the way back and in: ``s = L ln(|lat| / (pos_tol / 2))`` each way,
-        at least ``backoff``."""
-        f, c = self.cfg.final, self.cfg
-        need = c.final_lookahead * float(np.log(max(abs(lat), 1e-9) / (0.5 * f.pos_tol)))
-        self._backoff_to = float(np.clip(need, c.backoff, c.approach_radius))
+        offset ``lat`` on the way back and in (:meth:`_line_needed` each way, at least
+        ``backoff``)."""
+        c = self.cfg
+        self._backoff_to = float(np.clip(self._line_needed(lat), c.backoff, c.approach_radius))
         self._phase = "backoff"
 
     def _confirmed(self, a: float, lat: float) -> tuple[float, float] | None:
@@ -160,9 +163,7 @@ class PathFollower:
             if abs(eth) > f.yaw_tol:
                 return self._turn(eth)
             self._phase = "creep"
-            if abs(lat) > f.pos_tol and abs(a) < c.final_lookahead * np.log(
-                abs(lat) / (0.5 * f.pos_tol)
-            ):
+            if abs(lat) > f.pos_tol and abs(a) < self._line_needed(lat):
                 self._start_line(lat)
         if self._phase == "backoff":
             if a < self._backoff_to - 0.5 * f.pos_tol:  # back until the goal is that far ahead
@@ -222,7 +223,6 @@ class PathFollower:
         c = self.cfg
         pose = np.asarray(pose, float)
         dist_goal = float(np.hypot(*(self.goal[:2] - pose[:2])))
-        self._last_pose = pose
         if self.final_phase or dist_goal < c.approach_radius:
             self.final_phase = True
             return self._final(pose)
