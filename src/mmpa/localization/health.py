@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.geometry import Array
+from mmpa.geometry import Array, se2_compose
 
 __all__ = [
     "Health",
@@ -137,6 +137,12 @@ class Health:
     lost: bool = False
 
 
+def _laser_in_map(pose: Array, laser_pose: Array | None) -> Array:
+    """The lidar's pose ``[x, y, theta]`` in ``map``: base pose(s) ``pose`` (3,) or (N, 3)
+    composed with the mount ``laser_pose`` (``base_link``; None: at the base origin)."""
+    return se2_compose(pose, np.zeros(3) if laser_pose is None else laser_pose)
+
+
 def explained_share(
     dist: Array,
     resolution: float,
@@ -157,22 +163,10 @@ def explained_share(
     a_b), sin(...)]`` (``o`` the laser origin, ``theta_l`` the mount yaw) and is explained
     if it falls in a cell with ``dist <= explain_dist + r_b sin(explain_angle)``; outside the
     map it is not. No beams: ``(nan, 0)``."""
-    r = np.asarray(ranges, float)
-    a = np.asarray(angles, float)
-    if r.size == 0:
-        return float("nan"), 0
-    lp = np.zeros(3) if laser_pose is None else np.asarray(laser_pose, float)
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    ox, oy = pose[0] + c * lp[0] - s * lp[1], pose[1] + s * lp[0] + c * lp[1]
-    th = a + pose[2] + lp[2]
-    col = np.floor((ox + r * np.cos(th) - origin[0]) / resolution)
-    row = np.floor((oy + r * np.sin(th) - origin[1]) / resolution)
-    h, w = dist.shape
-    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    d = np.full(r.shape, np.inf)
-    d[inside] = dist[row[inside].astype(np.intp), col[inside].astype(np.intp)]
-    ok = d <= explain_dist + r * np.sin(explain_angle)
-    return float(np.mean(ok)), int(r.size)
+    share, _ = explained_near(
+        dist, resolution, origin, pose, ranges, angles, laser_pose, explain_dist, explain_angle
+    )
+    return share, int(np.size(ranges))
 
 
 def explained_near(
@@ -200,17 +194,17 @@ def explained_near(
     pose = np.asarray(pose, float)
     if r.size == 0:
         return float("nan"), pose.copy()
+    if search_xy == 0 and search_theta == 0:
+        steps = 0  # the estimate alone, not (2 steps + 1)^3 copies of it
     k = np.arange(-steps, steps + 1) / max(steps, 1)
     gx, gy, gt = np.meshgrid(k * search_xy, k * search_xy, k * search_theta, indexing="ij")
     offs = np.column_stack([gx.ravel(), gy.ravel(), gt.ravel()])
     offs = offs[np.argsort(np.hypot(offs[:, 0], offs[:, 1]) + np.abs(offs[:, 2]), kind="stable")]
     P = pose[None, :] + offs
-    lp = np.zeros(3) if laser_pose is None else np.asarray(laser_pose, float)
-    c, s = np.cos(P[:, 2:3]), np.sin(P[:, 2:3])
-    ox, oy = P[:, 0:1] + c * lp[0] - s * lp[1], P[:, 1:2] + s * lp[0] + c * lp[1]
-    th = a[None, :] + P[:, 2:3] + lp[2]
-    col = np.floor((ox + r * np.cos(th) - origin[0]) / resolution)
-    row = np.floor((oy + r * np.sin(th) - origin[1]) / resolution)
+    Lp = _laser_in_map(P, laser_pose)  # (N, 3)
+    th = a[None, :] + Lp[:, 2:3]
+    col = np.floor((Lp[:, 0:1] + r * np.cos(th) - origin[0]) / resolution)
+    row = np.floor((Lp[:, 1:2] + r * np.sin(th) - origin[1]) / resolution)
     h, w = dist.shape
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
     d = np.full(col.shape, np.inf)
@@ -242,10 +236,8 @@ def crossed_share(
     a = np.asarray(angles, float)
     if r.size == 0:
         return float("nan")
-    lp = np.zeros(3) if laser_pose is None else np.asarray(laser_pose, float)
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    ox, oy = pose[0] + c * lp[0] - s * lp[1], pose[1] + s * lp[0] + c * lp[1]
-    th = a + pose[2] + lp[2]
+    ox, oy, th0 = _laser_in_map(np.asarray(pose, float), laser_pose)
+    th = a + th0
     stop = np.maximum(r - margin - r * np.sin(margin_angle), 0.0)
     step = resolution / 2
     n = np.ceil(stop / step).astype(np.int64)

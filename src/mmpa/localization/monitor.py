@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from mmpa.geometry import Array
+from mmpa.geometry import Array, se2_compose, se2_inv
 from mmpa.localization.amcl import PoseEstimate, check_scan, finite_pose
 from mmpa.localization.health import (
     Health,
@@ -50,20 +50,7 @@ from mmpa.localization.health import (
 from mmpa.localization.maps import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan
 
-__all__ = ["MonitoredLocalizer", "se2_compose", "se2_inverse"]
-
-
-def se2_compose(a: Array, b: Array) -> Array:
-    """``a * b`` for SE(2) poses ``[x, y, theta]``."""
-    c, s = np.cos(a[2]), np.sin(a[2])
-    th = (a[2] + b[2] + np.pi) % (2 * np.pi) - np.pi
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], th])
-
-
-def se2_inverse(a: Array) -> Array:
-    """``inv(a)`` for an SE(2) pose ``[x, y, theta]``."""
-    c, s = np.cos(a[2]), np.sin(a[2])
-    return np.array([-c * a[0] - s * a[1], s * a[0] - c * a[1], -a[2]])
+__all__ = ["MonitoredLocalizer"]
 
 
 class MonitoredLocalizer:
@@ -130,7 +117,7 @@ class MonitoredLocalizer:
     def _check_odometry(self, raw: Array, stamp: float) -> None:
         """Refuse an implausible increment from the last call's odometry (see module)."""
         if self._raw_prev is not None:
-            delta = se2_compose(se2_inverse(self._raw_prev), raw)
+            delta = se2_compose(se2_inv(self._raw_prev), raw)
             dt = None
             if self._stamp_prev is not None and stamp > 0 and self._stamp_prev > 0:
                 dt = stamp - self._stamp_prev
@@ -138,7 +125,7 @@ class MonitoredLocalizer:
             if not ok:
                 # F_new * raw = F_old * raw_prev: the increment becomes zero motion
                 held = se2_compose(self._fix, self._raw_prev)
-                self._fix = se2_compose(held, se2_inverse(raw))
+                self._fix = se2_compose(held, se2_inv(raw))
                 self._odom_flag = self.health_cfg.odom_hold
                 self._odom_reason = f"{why}; refused (taken as no motion)"
                 self.refused_odometry += 1

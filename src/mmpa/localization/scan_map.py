@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array
+from mmpa.geometry import Array, se2_compose
 from mmpa.localization.maps import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan
 
@@ -28,11 +28,9 @@ def scan_endpoints(pose: Array, scan: LaserScan, laser_pose: Array | None = None
     """Map-frame endpoints (M, 2) of the valid beams of ``scan`` taken at base pose ``pose``
     ``[x, y, theta]`` with the lidar mounted at ``laser_pose`` (base frame, default 0):
     ``p = o + r [cos(theta_l + a), sin(theta_l + a)]``."""
-    lp = np.zeros(3) if laser_pose is None else np.asarray(laser_pose, float)
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    ox, oy = pose[0] + c * lp[0] - s * lp[1], pose[1] + s * lp[0] + c * lp[1]
+    ox, oy, th = se2_compose(pose, np.zeros(3) if laser_pose is None else laser_pose)
     m = scan.valid()
-    a = scan.angles[m] + pose[2] + lp[2]
+    a = scan.angles[m] + th
     r = scan.ranges[m]
     return np.column_stack([ox + r * np.cos(a), oy + r * np.sin(a)])
 
@@ -97,13 +95,13 @@ def _rays(
     pose: Array, scan: LaserScan, lp: Array, max_range: float, free_range: float
 ) -> tuple[Array, Array, Array]:
     """Origins (B, 2), endpoints (B, 2) and hit flags (B,) of one scan's usable beams."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    o = np.array([pose[0] + c * lp[0] - s * lp[1], pose[1] + s * lp[0] + c * lp[1]])
+    L = se2_compose(pose, lp)  # the lidar in the map
+    o = L[:2]
     r = np.asarray(scan.ranges, float)
     hit = np.isfinite(r) & (r >= scan.range_min) & (r <= min(scan.range_max, max_range))
     miss = ~hit & ~np.isnan(r) & (r > max_range) & (free_range > 0)
     use = hit | miss
     rr = np.where(hit, r, free_range)[use]
-    a = scan.angles[use] + pose[2] + lp[2]
+    a = scan.angles[use] + L[2]
     e = o + rr[:, None] * np.column_stack([np.cos(a), np.sin(a)])
     return np.repeat(o[None, :], len(rr), axis=0), e, hit[use]
