@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -40,6 +40,9 @@ from mmpa.calibration.reflector_survey import (
 from mmpa.errors import InvalidInputError, MMPAError
 from mmpa.geometry import Array
 from mmpa.localization.reflectors import DetectionConfig, detect_reflectors
+
+if TYPE_CHECKING:  # pragma: no cover
+    from mmpa.navigation.mission import NavigateConfig
 
 __all__ = ["SurveyDrive", "SurveyDriveConfig", "survey_drive", "survey_stations"]
 
@@ -120,6 +123,24 @@ def _map_matched(
     return np.array([v[0] - c * lp[0] + sn * lp[1], v[1] - sn * lp[0] - c * lp[1], th])
 
 
+def _stop_navigation(leg_timeout: float) -> NavigateConfig:
+    """How the drive reaches a survey stop: a stop needs a pose estimate, not a precise
+    park: 2 cm / 2 deg, no staging stretch (the stops lie on the path, 1 m apart), no
+    re-approach; ``leg_timeout`` s per leg."""
+    from mmpa.navigation.follower import FollowerConfig
+    from mmpa.navigation.mission import NavigateConfig
+
+    fin = FollowerConfig().final.model_copy(update={"pos_tol": 0.02, "yaw_tol": np.deg2rad(2.0)})
+    return NavigateConfig(
+        timeout=leg_timeout,
+        initial_scans=0,
+        settle_scans=3,
+        max_corrections=0,
+        staging_distance=0.0,
+        follower=FollowerConfig(final=fin),
+    )
+
+
 def survey_drive(
     robot: Any,
     localizer: Any,
@@ -138,8 +159,7 @@ def survey_drive(
     lidar mount ``laser_pose`` ``[x, y, yaw]`` in ``base_link``. ``truth()`` (evaluation
     only; never steers) gives the base's true pose per stop. Raises
     :class:`~mmpa.errors.InvalidInputError` on a malformed mount or station."""
-    from mmpa.navigation.follower import FollowerConfig
-    from mmpa.navigation.mission import NavigateConfig, navigate
+    from mmpa.navigation.mission import navigate
 
     cfg = cfg or SurveyDriveConfig()
     log = log or (lambda m: None)
@@ -151,17 +171,7 @@ def survey_drive(
         if st.shape != (3,) or not np.isfinite(st).all():
             raise InvalidInputError(f"station {k} must be a finite [x, y, theta], got {st!r}")
     sdf = signed_distance_map(grid.occupied, grid.resolution) if cfg.map_match else None
-    # a survey stop needs a pose estimate, not a precise park: 2 cm / 2 deg, no staging
-    # stretch (the stops lie on the path, 1 m apart), no re-approach
-    fin = FollowerConfig().final.model_copy(update={"pos_tol": 0.02, "yaw_tol": np.deg2rad(2.0)})
-    nav = NavigateConfig(
-        timeout=cfg.leg_timeout,
-        initial_scans=0,
-        settle_scans=3,
-        max_corrections=0,
-        staging_distance=0.0,
-        follower=FollowerConfig(final=fin),
-    )
+    nav = _stop_navigation(cfg.leg_timeout)
     det_cfg = cfg.detection
     points: list[Array] = []
     pose_idx: list[int] = []

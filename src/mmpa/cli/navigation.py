@@ -48,6 +48,18 @@ def _with_reflectors(grid: OccupancyGrid, path: Path | None) -> OccupancyGrid:
     return dataclasses.replace(grid, reflectors=rm.xy.copy(), reflector_radius=float(rm.radius[0]))
 
 
+def _health_summary(trace: dict) -> dict:
+    """The localizer's health over a drive (:mod:`mmpa.localization.health`): updates that
+    said ``ok=False`` and the least explained share (when any was judged)."""
+    import numpy as np
+
+    ok, expl = trace["ok"].astype(bool), trace["explained"]
+    out: dict = {"localization_updates_not_ok": int(np.sum(~ok))}
+    if np.isfinite(expl).any():
+        out["localization_explained_min"] = round(float(np.nanmin(expl)), 3)
+    return out
+
+
 def navigate_cmd(
     ctx: typer.Context,
     to: Annotated[str, typer.Option("--to", help="Goal site (e.g. 1, 2).")],
@@ -125,11 +137,7 @@ def navigate_cmd(
         "localization_error_xy_mm": round(1000 * float(np.hypot(e[0], e[1])), 2),
         "localization_error_yaw_deg": round(float(np.rad2deg(abs(e[2]))), 3),
     }
-    ok, expl = res.trace.get("ok", np.ones(0, bool)), res.trace.get("explained", np.zeros(0))
-    # the localizer's health over the drive (mmpa.localization.health)
-    summary["localization_updates_not_ok"] = int(np.sum(~ok.astype(bool)))
-    if np.isfinite(expl).any():
-        summary["localization_explained_min"] = round(float(np.nanmin(expl)), 3)
+    summary.update(_health_summary(res.trace))
     if not res.reached:
         summary["reason"] = res.reason
     if refl_map is not None:

@@ -181,6 +181,19 @@ def staged_path(
     return plan_path(cm, start, goal[:2], cfg)
 
 
+def _how_far(est: Array, goal: Array, cfg: NavigateConfig) -> str:
+    """``": the estimate is X mm / Y deg from the goal (tolerance ...)"``: how far a drive
+    that did not reach stopped, by the robot's own estimate, against the settle check's
+    tolerance."""
+    fin, k = cfg.follower.final, cfg.settle_scale
+    e = est - goal
+    return (
+        f": the estimate is {1000 * np.hypot(e[0], e[1]):.1f} mm / "
+        f"{np.rad2deg(abs(wrap_angle(e[2]))):.2f} deg from the goal (tolerance "
+        f"{1000 * k * fin.pos_tol:.1f} mm / {np.rad2deg(k * fin.yaw_tol):.2f} deg)"
+    )
+
+
 def navigate(
     world: MobileRobot,
     localizer: Localizer,
@@ -209,14 +222,8 @@ def navigate(
     dt = 1.0 / cfg.control_rate
     scan_every = max(1, round(cfg.control_rate / cfg.scan_rate))
     t0 = world.time
-    trace: dict[str, list[Any]] = {
-        "t": [],
-        "truth": [],
-        "estimate": [],
-        "reflectors": [],
-        "ok": [],
-        "explained": [],
-    }
+    keys = ("t", "truth", "estimate", "reflectors", "ok", "explained")
+    trace: dict[str, list[Any]] = {k: [] for k in keys}
     tick = 0
 
     def sense(force: bool = False) -> Array:
@@ -288,14 +295,8 @@ def navigate(
     world.base.stop()
     world.step(0.2)
     final_est = localizer.pose_at(world.odometry.odometry().pose)
-    if not reached:  # how far, by the robot's own estimate, against which tolerance
-        e = final_est - goal
-        reason += (
-            f": the estimate is {1000 * np.hypot(e[0], e[1]):.1f} mm / "
-            f"{np.rad2deg(abs(wrap_angle(e[2]))):.2f} deg from the goal (tolerance "
-            f"{1000 * cfg.settle_scale * fin.pos_tol:.1f} mm / "
-            f"{np.rad2deg(cfg.settle_scale * fin.yaw_tol):.2f} deg)"
-        )
+    if not reached:
+        reason += _how_far(final_est, goal, cfg)
     return NavigationResult(
         reached=reached,
         goal=goal,
