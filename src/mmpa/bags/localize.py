@@ -235,17 +235,18 @@ def _write_csv(path: Path, res: LocalizeResult) -> None:
         cols += ["truth_x", "truth_y", "truth_theta", "error_mm"]
         err = np.hypot(*(res.estimate[:, :2] - res.truth[:, :2]).T) * 1e3
         rows += [res.truth, err[:, None]]
+    judged = res.ok is not None and res.health is not None and res.reason is not None
+    if judged:
+        cols += ["ok", "explained", "crossed", "spread_xy"]
+        h = [
+            [o, x.explained, x.crossed, x.spread_xy]
+            for o, x in zip(res.ok, res.health, strict=True)
+        ]
+        rows.append(np.array(h, float).reshape(-1, 4))
     table = np.hstack(rows)
-    if res.ok is None or res.health is None or res.reason is None:
-        np.savetxt(path, table, delimiter=",", header=",".join(cols), comments="", fmt="%.9g")
+    np.savetxt(path, table, delimiter=",", header=",".join(cols), comments="", fmt="%.9g")
+    if not judged:
         return
-    cols += ["ok", "explained", "crossed", "spread_xy"]
-    h = np.array(
-        [[o, x.explained, x.crossed, x.spread_xy] for o, x in zip(res.ok, res.health, strict=True)]
-    )
-    np.savetxt(
-        path, np.hstack([table, h]), delimiter=",", header=",".join(cols), comments="", fmt="%.9g"
-    )
     # the reasons of the estimates that were not ok, one line each (text: its own file)
     with open(path.with_name("not_ok.csv"), "w", encoding="utf-8") as f:
         f.write("t,reason\n")
