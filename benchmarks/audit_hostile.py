@@ -6,7 +6,7 @@ issue 22 names -- map_server maps, reflector maps, scenes, robot files, YAML ali
 registration, task bundles, the SQLite task store and the CLI -- runs each as a small
 callable and classifies the outcome:
 
-- ``clear``: refused with an mmpa error (:class:`mmpa.errors.MMPAError`; pydantic errors
+- ``clear``: refused with an mmpa error (:class:`mmpa.core.errors.MMPAError`; pydantic errors
   count only when mmpa's loaders wrap them in ConfigError); a CLI run exiting non-zero with
   no traceback (in-process: an MMPAError or OSError escaping the app counts as clear because
   the ``mmpa`` console script prints those as one line);
@@ -59,7 +59,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 import numpy as np
 import yaml
 
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 
 REPO = Path(__file__).resolve().parents[1]
 CASE_LIMIT_S = 20.0  # per in-process case
@@ -169,14 +169,14 @@ def _digest(p: Path) -> str:
 
 def yaml_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
     """Alias bombs, oversize, non-UTF-8 and broken syntax in every YAML reader."""
-    from mmpa.config import load_config
-    from mmpa.experiments.demo import DemoConfig
-    from mmpa.localization.maps import load_map
-    from mmpa.localization.reflector_map import load_reflector_map
+    from mmpa.apps.demo import DemoConfig
+    from mmpa.backends.twin.scene import load_scene
+    from mmpa.core.config import load_config
+    from mmpa.core.yamlio import load_yaml, load_yaml_text
+    from mmpa.maps.occupancy import load_map
+    from mmpa.maps.reflector_map import load_reflector_map
     from mmpa.robot.robot_file import load_robot
-    from mmpa.sim.scene import load_scene
     from mmpa.tasks import read_bundle
-    from mmpa.yamlio import load_yaml, load_yaml_text
 
     d = tmp / "yaml"
     d.mkdir()
@@ -259,7 +259,7 @@ MAP_DOC = {
 
 
 def map_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
-    from mmpa.localization.maps import load_map
+    from mmpa.maps.occupancy import load_map
 
     d = tmp / "maps"
     d.mkdir()
@@ -376,7 +376,7 @@ RM_DOC = {
 
 
 def reflector_map_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
-    from mmpa.localization.reflector_map import load_reflector_map
+    from mmpa.maps.reflector_map import load_reflector_map
 
     d = tmp / "rm"
     d.mkdir()
@@ -422,7 +422,7 @@ def reflector_map_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
 
 
 def scene_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
-    from mmpa.sim.scene import default_scene_path, load_scene
+    from mmpa.backends.twin.scene import default_scene_path, load_scene
 
     d = tmp / "scenes"
     d.mkdir()
@@ -604,8 +604,8 @@ def robot_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
 
 
 def config_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
-    from mmpa.config import load_config
-    from mmpa.experiments.demo import DemoConfig
+    from mmpa.apps.demo import DemoConfig
+    from mmpa.core.config import load_config
 
     base = DemoConfig().model_dump(mode="json")
     leaves = list(_leaves(base))
@@ -665,7 +665,7 @@ def config_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
 
 
 def _room(with_reflectors: bool):
-    from mmpa.localization.maps import Box2D, rasterize
+    from mmpa.maps.occupancy import Box2D, rasterize
 
     walls = [
         Box2D((0.0, 3.0), (8.0, 0.1)),
@@ -864,10 +864,10 @@ def localizer_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
 
 
 def joint_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
+    from mmpa.backends.twin.world import SimWorld
     from mmpa.planning import retime
     from mmpa.robot.description import ArmDescription
     from mmpa.robot.limits import JointLimits, check_path
-    from mmpa.sim.world import SimWorld
 
     arm_d = ArmDescription()
     lim = JointLimits.from_description(arm_d)
@@ -1116,7 +1116,7 @@ def registration_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
                 check=refused,
             )
         )
-    from mmpa.config import load_config
+    from mmpa.core.config import load_config
 
     for label, sets in {
         "voxel 0": ["coarse_voxel=0"],
@@ -1745,9 +1745,9 @@ def cli_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
 def _rd_bag(path: Path, static: list[tuple[str, str, np.ndarray]], frames: list[str]) -> Path:
     """A small bag as a real robot records it: /map, /initialpose, /odom, one scan per frame
     in ``frames``, and ``static`` transforms (parent, child, 4x4) on /tf_static."""
-    from mmpa.bags import BagWriter
-    from mmpa.bags import messages as rm
-    from mmpa.localization.maps import OccupancyGrid
+    from mmpa.backends.bag import BagWriter
+    from mmpa.backends.bag import messages as rm
+    from mmpa.maps.occupancy import OccupancyGrid
     from mmpa.robot.interfaces import LaserScan, Odometry
 
     data = np.zeros((60, 60), np.int8)
@@ -1808,16 +1808,16 @@ def real_data_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
 
     from typer.testing import CliRunner
 
-    from mmpa.bags import messages as rm
-    from mmpa.bags.localize import LocalizeConfig, run_localize
+    from mmpa.apps.localize import LocalizeConfig, run_localize
+    from mmpa.backends.bag import messages as rm
+    from mmpa.backends.twin.scene import load_scene, parse_scene
     from mmpa.cli.main import app
-    from mmpa.geometry import make_T
-    from mmpa.localization.maps import OccupancyGrid
-    from mmpa.missions.mmpa import replay_tmma
+    from mmpa.core.geometry import make_T
+    from mmpa.maps.occupancy import OccupancyGrid
+    from mmpa.missions.teach_repeat import replay_tmma
     from mmpa.robot.description import CameraIntrinsics, RobotDescription
     from mmpa.robot.interfaces import PointCloud
     from mmpa.robot.kinematics import fk
-    from mmpa.sim.scene import load_scene, parse_scene
     from mmpa.tasks import Task, TaskStore, ToolPath
 
     d = tmp / "real"

@@ -2,7 +2,7 @@
 fed inconsistent input, and only then?
 
 Drives are recorded once from the twin (``SimWorld``, realistic error profile; the robot
-navigates site to site with :func:`mmpa.navigation.mission.navigate` on the true pose, and
+navigates site to site with :func:`mmpa.missions.navigate.navigate` on the true pose, and
 every scan, odometry pose and true pose is kept). Each seeded trial picks a stretch of a
 recording, starts the method at the true pose plus a small error, feeds ``clean`` updates
 untouched, then injects one fault for up to ``within`` updates:
@@ -27,7 +27,10 @@ No-false-alarm rates: the same recordings fed clean from the start (the share of
 with ``ok=False`` while the error is < 0.2 m), and, where ``/work/shared/real-data/laser``
 (or ``--real``) holds the CARMEN logs, AMCL (beam model, alphas 0.05, z_hit 0.95, z_rand
 0.05, sigma_hit 0.1) over each log from the true pose on a map built from its corrected
-trajectory: false alarms at error < 0.2 m, flags where it diverged past 1 m.
+trajectory: false alarms at error < 0.2 m, flags where it diverged past 1 m. For both, the
+health figures' extremes at error < 0.2 m (``extremes``: the lowest explained window, the
+highest crossed window, correction ratio and fix-to-estimate window): the margins to the
+thresholds.
 
 Run::
 
@@ -52,10 +55,10 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 import numpy as np
 
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 from mmpa.localization.amcl import AMCLConfig, PoseEstimate
 from mmpa.localization.localizer import METHODS, make_localizer
-from mmpa.localization.maps import Box2D, OccupancyGrid, rasterize
+from mmpa.maps.occupancy import Box2D, OccupancyGrid, rasterize
 from mmpa.robot.interfaces import LaserScan
 
 CASES = (
@@ -83,11 +86,11 @@ class Recording:
 
 def record_drive(start: str, to: str, seed: int) -> Recording:
     """One twin drive ``start`` -> ``to`` navigated on the true pose (every scan kept)."""
-    from mmpa.navigation.mission import NavigateConfig, navigate
+    from mmpa.backends.twin.error_model import ErrorModelConfig
+    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
+    from mmpa.backends.twin.world import SimWorld
+    from mmpa.missions.navigate import NavigateConfig, navigate
     from mmpa.navigation.planner import CostMap
-    from mmpa.sim.error_model import ErrorModelConfig
-    from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
-    from mmpa.sim.world import SimWorld
 
     with SimWorld(site=start, errors=ErrorModelConfig(seed=seed)) as world:
         grid = twin_map(world)
@@ -269,11 +272,30 @@ def audit_twin(args: argparse.Namespace, recs: list[Recording]) -> dict[str, Any
     return {"table": table, "examples": examples}
 
 
+def _extremes(healths: list[Any]) -> dict[str, float]:
+    """The health figures' extremes over ``healths`` (the estimates at error < 0.2 m): how
+    close a correct estimate came to each threshold (see docs/localization_health.md)."""
+
+    def ext(f: Any, name: str) -> float:
+        v = np.array([getattr(h, name) for h in healths], float)
+        v = v[np.isfinite(v)]
+        return round(float(f(v)), 3) if v.size else float("nan")
+
+    return {
+        "explained_window_min": ext(np.min, "window"),
+        "explained_window_p1": ext(lambda v: np.percentile(v, 1), "window"),
+        "crossed_window_max": ext(np.max, "crossed_window"),
+        "correction_ratio_max": ext(np.max, "correction_ratio"),
+        "fix_window_max": ext(np.max, "fix_window"),
+    }
+
+
 def false_alarms_twin(args: argparse.Namespace, recs: list[Recording]) -> dict[str, Any]:
     """Clean drives from start to end: ok=False updates with error < 0.2 m."""
     out: dict[str, Any] = {}
     for method in args.methods.split(","):
         fa = good = 0
+        healths = []
         for j, rec in enumerate(recs):
             loc = make_localizer(method, rec.grid, rec.laser_pose, np.random.default_rng(j))
             loc.initialize(rec.truth[0] + np.array([0.05, -0.05, 0.02]))
@@ -282,15 +304,18 @@ def false_alarms_twin(args: argparse.Namespace, recs: list[Recording]) -> dict[s
                 d, _ = _err(loc.pose_at(rec.odom[i]), rec.truth[i])
                 good += d < 0.2
                 fa += bool(d < 0.2 and not est.ok)
+                if d < 0.2:
+                    healths.append(est.health)
         out[method] = {"updates_err_lt_0.2m": good, "false_alarms": fa, "rate": fa / max(good, 1)}
+        out[method]["extremes"] = _extremes(healths)
         print(f"  twin clean {method:15s} {out[method]}", flush=True)
     return out
 
 
 def real_logs(root: Path, seed: int) -> dict[str, Any]:
     """AMCL (beam model) over each CARMEN log from the true pose: false alarms and flags."""
-    from mmpa.bags.carmen import read_carmen
-    from mmpa.localization.scan_map import occupancy_from_scans
+    from mmpa.backends.bag.carmen import read_carmen
+    from mmpa.maps.from_scans import occupancy_from_scans
 
     cfg = AMCLConfig(
         laser_model_type="beam",
@@ -308,11 +333,13 @@ def real_logs(root: Path, seed: int) -> dict[str, Any]:
         grid = occupancy_from_scans(log.poses, log.scans, 0.05)
         loc = make_localizer("amcl", grid, np.zeros(3), np.random.default_rng(seed), amcl=cfg)
         loc.initialize(log.poses[0])
-        err, ok = [], []
+        err, ok, healths = [], [], []
         for k in range(len(log)):
             est = loc.update(log.odometry[k], log.scans[k])
             err.append(_err(loc.pose_at(log.odometry[k]), log.poses[k])[0])
             ok.append(est.ok)
+            if err[-1] < 0.2:
+                healths.append(est.health)
         e, o = np.array(err), np.array(ok)
         good, bad = e < 0.2, e > 1.0
         out[path.name] = {
@@ -322,6 +349,7 @@ def real_logs(root: Path, seed: int) -> dict[str, Any]:
             "false_alarm_rate": float((~o & good).sum() / max(good.sum(), 1)),
             "diverged_gt_1m": int(bad.sum()),
             "flagged_when_diverged": float((~o & bad).sum() / max(bad.sum(), 1)),
+            "extremes": _extremes(healths),
         }
         print(f"  {path.name:32s} {out[path.name]}", flush=True)
     return out

@@ -44,8 +44,8 @@ MAX_BEAMS = 60
 
 def record(path: str) -> None:
     os.environ.setdefault("MUJOCO_GL", "osmesa")
-    from mmpa.sim.twin_maps import laser_pose2d, twin_map
-    from mmpa.sim.world import SimWorld
+    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
+    from mmpa.backends.twin.world import SimWorld
 
     with SimWorld(site="1") as w:
         grid = twin_map(w)
@@ -92,7 +92,7 @@ def ours(path: str, old: str | None = None) -> None:
     import importlib.util
 
     from mmpa.localization import amcl as new_mod
-    from mmpa.localization.maps import OccupancyGrid
+    from mmpa.maps.occupancy import OccupancyGrid
     from mmpa.robot.interfaces import LaserScan
 
     d = np.load(path)

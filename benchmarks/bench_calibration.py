@@ -43,7 +43,7 @@ def _seeds(text: str) -> list[int]:
 
 
 def hand_eye(seed: int) -> dict:
-    from mmpa.experiments.calibrate import HandEyeConfig, run_hand_eye
+    from mmpa.apps.calibrate import HandEyeConfig, run_hand_eye
 
     s = run_hand_eye(HandEyeConfig(seed=seed), None, log=lambda m: None)
     cv = s["by_method"]["opencv"]
@@ -63,7 +63,7 @@ def hand_eye(seed: int) -> dict:
 
 
 def survey(seed: int, paper: bool) -> dict:
-    from mmpa.experiments.calibrate import ReflectorSurveyConfig, run_reflector_survey
+    from mmpa.apps.calibrate import ReflectorSurveyConfig, run_reflector_survey
 
     extra = {"scans": 10, "detection": {"bearing": "mean"}} if paper else {}
     s = run_reflector_survey(ReflectorSurveyConfig(seed=seed, **extra), None, log=lambda m: None)

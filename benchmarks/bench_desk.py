@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from mmpa.geometry import Array, apply, inv
+from mmpa.core.geometry import Array, apply, inv
 from mmpa.registration import (
     ProjectiveConfig,
     RegistrationConfig,

@@ -34,14 +34,14 @@ PAIRS = [("0", "1"), ("0", "2"), ("1", "0"), ("1", "2"), ("2", "0"), ("2", "1")]
 
 def drive(seed: int, start: str, to: str, profile: str) -> dict:
     """One drive as ``mmpa navigate`` runs it; its outcome and errors (mm, deg)."""
-    from mmpa.config import load_config
+    from mmpa.backends.twin.error_model import ErrorModelConfig
+    from mmpa.backends.twin.operator import rough_initial_pose
+    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
+    from mmpa.backends.twin.world import SimWorld
+    from mmpa.core.config import load_config
     from mmpa.localization.localizer import make_localizer
-    from mmpa.navigation.mission import NavigateConfig, navigate
+    from mmpa.missions.navigate import NavigateConfig, navigate
     from mmpa.navigation.planner import CostMap
-    from mmpa.sim.error_model import ErrorModelConfig
-    from mmpa.sim.operator import rough_initial_pose
-    from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
-    from mmpa.sim.world import SimWorld
 
     errors = load_config(ErrorModelConfig, None, [f"seed={seed}", f"profile={profile}"])
     t0 = time.perf_counter()

@@ -19,9 +19,9 @@ import time
 import mujoco
 import numpy as np
 
+from mmpa.backends.twin.moving_base import KinematicMovingBase, MovingBaseNoise
+from mmpa.backends.twin.world import SimWorld
 from mmpa.fiducial_search import SearchConfig, make_strategy, run_pass
-from mmpa.sim.moving_base import KinematicMovingBase, MovingBaseNoise
-from mmpa.sim.world import SimWorld
 
 TARGET_PASS_S = 600.0 / 180
 

@@ -37,7 +37,7 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--set", action="append", default=[], help="an override, as mmpa --set")
     a = ap.parse_args()
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     print(f"cores: {os.cpu_count()}, load average before: {os.getloadavg()}")
     with tempfile.TemporaryDirectory() as d:

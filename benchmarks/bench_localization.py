@@ -16,11 +16,11 @@ os.environ.setdefault("MUJOCO_GL", "osmesa")
 
 import numpy as np
 
+from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
+from mmpa.backends.twin.world import SimWorld
 from mmpa.localization.amcl import AMCL, AMCLConfig
 from mmpa.localization.enhanced import EnhancedAMCL
-from mmpa.localization.maps import Box2D, rasterize
-from mmpa.sim.twin_maps import laser_pose2d, twin_map
-from mmpa.sim.world import SimWorld
+from mmpa.maps.occupancy import Box2D, rasterize
 
 
 def _median_ms(fn, n: int = 50) -> float:

@@ -7,7 +7,7 @@ Measures
       ``src/mmpa/perception/weights/ssd_pruned.pt`` when present), with parameters and MACs;
   (b) the tracking servo loop in the twin at 20 Hz control: wall time per tick including the
       RGB-D capture (render + noise) at the servo loop's stream profile (320x240,
-      ``mmpa.experiments.grasp.SERVO_RESOLUTION``; and at 640x480 for comparison),
+      ``mmpa.experiments.paper001.grasp.SERVO_RESOLUTION``; and at 640x480 for comparison),
       detection, 3D location, IBVS + null space and 0.05 s of physics; and the part of it
       that is mmpa's own code (detection + location + control), which is what a real robot
       would run per frame.
@@ -60,8 +60,8 @@ def bench_detector(path: Path | None) -> None:
 
 
 def bench_servo(resolution: tuple[int, int]) -> None:
-    from mmpa.experiments.grasp import Config, grasp_trial, make_grasper
-    from mmpa.sim.world import SimWorld
+    from mmpa.backends.twin.world import SimWorld
+    from mmpa.experiments.paper001.grasp import Config, grasp_trial, make_grasper
 
     with SimWorld(site="0") as w:
         g = make_grasper(Config(), w)
@@ -91,7 +91,7 @@ def main() -> None:
             bench_detector(p)
         except Exception as e:  # keep going: a benchmark always reports
             print(f"detector {p}: failed: {e}")
-    from mmpa.experiments.grasp import SERVO_RESOLUTION
+    from mmpa.experiments.paper001.grasp import SERVO_RESOLUTION
 
     for res in (SERVO_RESOLUTION, (640, 480)):
         try:

@@ -26,8 +26,8 @@ import time
 
 import numpy as np
 
-from mmpa.errors import UnreachableError
-from mmpa.localization.maps import Box2D, OccupancyGrid, rasterize
+from mmpa.core.errors import UnreachableError
+from mmpa.maps.occupancy import Box2D, OccupancyGrid, rasterize
 from mmpa.navigation.planner import CostMap, plan_path
 
 

@@ -6,9 +6,9 @@ Foxglove live view with no client connected instead of a bag; ``--demo``: the wh
 The run: the demo's drive without the MMPA stage -- Site 0 -> Site 1 on the enhanced AMCL
 (``navigate``: scans at 10 Hz, control at 20 Hz), then the arm's move to the bench view and
 ``CAPTURES`` RGB-D captures at the goal. It is timed (world construction excluded) without
-recording and with a :class:`mmpa.bags.Recorder` writing MCAP as ``mmpa demo --record``
+recording and with a :class:`mmpa.backends.bag.Recorder` writing MCAP as ``mmpa demo --record``
 does (every topic of the recorder, particle clouds of up to 100 poses, the arm's
-``/joint_states`` and ``/tf`` at :data:`mmpa.bags.record.ARM_RATE_HZ` through the whole
+``/joint_states`` and ``/tf`` at :data:`mmpa.backends.bag.record.ARM_RATE_HZ` through the whole
 run), alternating, ``--repeats`` times each; the medians are compared with the target
 (recording adds <= 10 % wall time). Also checks that the recorded run IS the unrecorded run
 (same final true pose, estimate and arm encoders, bit for bit; ``--demo``: the same summary
@@ -45,7 +45,7 @@ HOOK_SECONDS = [0.0]
 def _timed_hooks() -> None:
     """Time the Recorder's on_* hooks (the recording work proper, whatever the machine's
     load does to the wall time of the whole run)."""
-    from mmpa.bags.record import Recorder
+    from mmpa.backends.bag.record import Recorder
 
     names = ("on_scan", "on_odometry", "on_frame", "on_initial", "on_estimate", "write_map")
     # the arm stream: sampled in the stepping hook (on_arm), written after each step
@@ -66,14 +66,14 @@ def one_run(bag: Path | None, view: bool = False) -> tuple[float, tuple, dict[st
     """Wall seconds of the drive + arm move + captures, the run's outcome (final truth,
     final estimate, final encoders), sink counts. ``view``: the sink is the Foxglove live
     view with no client instead of a bag."""
-    from mmpa.bags import BagWriter, Recorder
-    from mmpa.bags.record import ARM_RATE_HZ
+    from mmpa.backends.bag import BagWriter, Recorder
+    from mmpa.backends.bag.record import ARM_RATE_HZ
+    from mmpa.backends.twin.operator import rough_initial_pose
+    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
+    from mmpa.backends.twin.world import SimWorld
     from mmpa.localization.localizer import make_localizer
-    from mmpa.navigation.mission import NavigateConfig, navigate
+    from mmpa.missions.navigate import NavigateConfig, navigate
     from mmpa.navigation.planner import CostMap
-    from mmpa.sim.operator import rough_initial_pose
-    from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
-    from mmpa.sim.world import SimWorld
 
     with SimWorld() as world:
         goal = world.scene.site("1").pose2d
@@ -83,7 +83,7 @@ def one_run(bag: Path | None, view: bool = False) -> tuple[float, tuple, dict[st
         _ = world.camera  # the renderer is built outside the timing, in both runs
         t0 = time.perf_counter()
         if view:
-            from mmpa.bags.view import FoxgloveView
+            from mmpa.apps.view import FoxgloveView
 
             writer = FoxgloveView(port=0)
         else:
@@ -119,8 +119,8 @@ DEMO_SKIP = {"bag", "bag_messages", "wall_seconds", "capture_seconds", "mmpa_ipe
 def one_demo(bag: Path | None, out: Path) -> tuple[float, dict, dict[str, int]]:
     """Wall seconds of ``mmpa demo`` (``run_demo``, all of it: world, teaching, drive, MMPA,
     capture, files), its summary less wall times, the bag's counts."""
-    from mmpa.backends.bag import bag_topics
-    from mmpa.experiments.demo import DemoConfig, run_demo
+    from mmpa.apps.demo import DemoConfig, run_demo
+    from mmpa.backends.bag.reader import bag_topics
 
     t0 = time.perf_counter()
     summary = run_demo(DemoConfig(), out, record=bag)

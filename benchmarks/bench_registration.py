@@ -47,7 +47,7 @@ from collections.abc import Callable
 import numpy as np
 import open3d as o3d
 
-from mmpa.geometry import Array, inv, rotation_error, translation_error
+from mmpa.core.geometry import Array, inv, rotation_error, translation_error
 from mmpa.registration import RegistrationConfig, prepare, refine_projective, register
 from mmpa.robot.interfaces import PointCloud
 
@@ -93,7 +93,7 @@ def open3d_reference(src: PointCloud, tgt: PointCloud, seed: int = 0) -> Array:
 def make_pairs(n: int, seed: int, near: bool) -> tuple[PointCloud, list[tuple[PointCloud, Array]]]:
     """Taught cloud at Site 1 and ``n`` current clouds with their true ``T_current_taught``;
     the current depth frames are kept in ``FRAMES`` (same order)."""
-    from mmpa.sim.world import SimWorld
+    from mmpa.backends.twin.world import SimWorld
 
     rng = np.random.default_rng(seed)
     with SimWorld(site="1") as w:

@@ -30,14 +30,14 @@ import json
 
 import numpy as np
 
-from mmpa.geometry import inv, translation_error
+from mmpa.core.geometry import inv, translation_error
 from mmpa.registration import RegistrationConfig, register
 
 
 def make_pairs(per_site: int, far: int, sigma: float, yaw_deg: float, seed: int) -> list:
     """(taught, current, T_true, offset) per pair; the last ``far`` pairs of each site have
     1.5x the standard deviation."""
-    from mmpa.sim.world import SimWorld
+    from mmpa.backends.twin.world import SimWorld
 
     rng = np.random.default_rng(seed)
     out = []

@@ -29,7 +29,7 @@ import traceback
 import mujoco
 import numpy as np
 
-from mmpa.sim.world import SimWorld
+from mmpa.backends.twin.world import SimWorld
 
 SIM_SECONDS = 20.0
 N_CAPTURES = 10

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmpa.geometry import make_T
+from mmpa.core.geometry import make_T
 from mmpa.planning import plan_joint_path, retime
 from mmpa.robot.description import default_robot
 from mmpa.robot.interfaces import Arm

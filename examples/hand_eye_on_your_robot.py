@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mmpa.calibration.procedure import HandEyeProcedureConfig, calibrate_hand_eye_on_robot
-from mmpa.experiments.calibrate import write_robot_file
-from mmpa.geometry import exp_se3
+from mmpa.apps.calibrate import write_robot_file
+from mmpa.core.geometry import exp_se3
+from mmpa.missions.hand_eye import HandEyeProcedureConfig, calibrate_hand_eye_on_robot
 from mmpa.robot.description import RobotDescription, default_robot
 from mmpa.robot.robot_file import load_robot
 
@@ -41,9 +41,9 @@ def _twin(cfg: HandEyeProcedureConfig, seed: int):
     pose where the twin places it (a tape measure's worth of knowledge)."""
     os.environ.setdefault("MUJOCO_GL", "osmesa")
     os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
-    from mmpa.sim.calibration_board import BoardPlacement, board_world
-    from mmpa.sim.error_model import ErrorModelConfig
-    from mmpa.sim.scene import load_scene
+    from mmpa.backends.twin.calibration_board import BoardPlacement, board_world
+    from mmpa.backends.twin.error_model import ErrorModelConfig
+    from mmpa.backends.twin.scene import load_scene
 
     scene = load_scene()
     placement = BoardPlacement.for_site(scene, "0")
@@ -94,8 +94,8 @@ def main(argv: list[str] | None = None) -> dict:
         )
         out = {"T_flange_camera": res.T_flange_camera, "method": res.method, "result": res}
         if world is not None:  # the twin knows the truth: the hand-eye on the model's flange
+            from mmpa.apps.calibrate import last_link_error
             from mmpa.calibration.hand_eye import pose_error
-            from mmpa.experiments.calibrate import last_link_error
 
             E6 = last_link_error(robot.arm.dh, world.true_robot.arm.dh)
             X_eff = E6 @ world.true_robot.camera.T_flange_camera

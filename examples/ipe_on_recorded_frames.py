@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mmpa.bags.register import load_png_frame, register_frames
-from mmpa.geometry import inv
+from mmpa.apps.register import load_png_frame, register_frames
+from mmpa.core.geometry import inv
 from mmpa.ipe.core import delta_T_B, transform_path
 from mmpa.robot.description import default_robot
 from mmpa.robot.kinematics import fk

@@ -15,7 +15,7 @@ import pytest
 pytest.importorskip("pyrealsense2", reason="the optional extra 'realsense'")
 
 from mmpa.backends.realsense import RealSenseCamera, RealSenseConfig, record_frames
-from mmpa.errors import InvalidInputError, MMPAError
+from mmpa.core.errors import InvalidInputError, MMPAError
 from mmpa.robot.description import CameraIntrinsics
 from mmpa.robot.interfaces import Camera, RGBDFrame
 
@@ -79,9 +79,9 @@ def test_ipe_runs_on_the_realsense_playback(tmp_path) -> None:
     """IPE on the twin, its camera recorded through the SDK; the same park again with the
     camera replaced by the RealSense playback (1 mm depth units, as a D400 streams): the
     estimate agrees with the live one and with the truth."""
-    from mmpa.experiments.mmpa_common import MMPAExperimentConfig, TwinSite
-    from mmpa.missions.mmpa import automate
-    from mmpa.sim.error_model import ErrorModelConfig
+    from mmpa.backends.twin.error_model import ErrorModelConfig
+    from mmpa.harness.twin_site import MMPAExperimentConfig, TwinSite
+    from mmpa.missions.teach_repeat import automate
 
     cfg = MMPAExperimentConfig(errors=ErrorModelConfig(profile="reference"))
     with TwinSite(cfg, "1") as ts:

@@ -10,7 +10,7 @@ import pytest
 from tests.ur_rtde_fake import FakeRTDE
 
 from mmpa.backends.ur import URArm, URConfig
-from mmpa.errors import InvalidInputError, JointLimitError, MMPAError
+from mmpa.core.errors import InvalidInputError, JointLimitError, MMPAError
 from mmpa.robot.description import ArmDescription
 from mmpa.robot.interfaces import Arm
 from mmpa.robot.limits import JointLimits, path_accelerations, path_velocities
@@ -117,7 +117,7 @@ def test_command_stream_is_velocity_and_acceleration_limited(limited: bool) -> N
 
 
 def test_freedrive_demonstration_becomes_a_teach_recording() -> None:
-    from mmpa.missions.mmpa import trajectory_recorder
+    from mmpa.missions.teach_repeat import trajectory_recorder
 
     arm, fake = _arm()
     fake.hand = lambda t: HOME + np.array([0.2, 0.0, 0.1, 0.0, 0.0, 0.0]) * min(t, 2.0) / 2.0

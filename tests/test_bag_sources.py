@@ -8,18 +8,18 @@ import math
 import numpy as np
 import pytest
 
-from mmpa.backends.bag import (
+from mmpa.backends.bag import BagWriter
+from mmpa.backends.bag import messages as rm
+from mmpa.backends.bag.reader import (
     BagJointStates,
     BagLidar,
     BagPlayback,
     EndOfBagError,
     odometry_from_tf,
 )
-from mmpa.bags import BagWriter
-from mmpa.bags import messages as rm
-from mmpa.bags.record import JOINT_NAMES
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import se2_to_T
+from mmpa.backends.bag.record import JOINT_NAMES
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import se2_to_T
 from mmpa.robot.interfaces import LaserScan
 
 
@@ -142,12 +142,12 @@ class _WithoutOdom:
 def driving_bags(tmp_path_factory):
     """The twin's base driving an arc while a localizer runs, recorded twice at once: with
     /odom, and with only /tf (+ /scan and the rest)."""
-    from mmpa.bags import Recorder
-    from mmpa.bags.view import Tee
+    from mmpa.apps.view import Tee
+    from mmpa.backends.bag import Recorder
+    from mmpa.backends.twin.operator import rough_initial_pose
+    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
+    from mmpa.backends.twin.world import SimWorld
     from mmpa.localization.localizer import make_localizer
-    from mmpa.sim.operator import rough_initial_pose
-    from mmpa.sim.twin_maps import laser_pose2d, twin_map
-    from mmpa.sim.world import SimWorld
 
     d = tmp_path_factory.mktemp("driving")
     with SimWorld() as world, BagWriter(d / "odom.mcap") as a, BagWriter(d / "tf.mcap") as b:
@@ -169,8 +169,8 @@ def driving_bags(tmp_path_factory):
 
 
 def test_localize_on_tf_odometry_equals_odom(driving_bags, tmp_path) -> None:
-    from mmpa.backends.bag import bag_topics
-    from mmpa.bags.localize import LocalizeConfig, localize_bag, run_localize
+    from mmpa.apps.localize import LocalizeConfig, localize_bag, run_localize
+    from mmpa.backends.bag.reader import bag_topics
 
     with_odom, tf_only, grid, live = driving_bags
     assert "/odom" in bag_topics(with_odom) and "/odom" not in bag_topics(tf_only)

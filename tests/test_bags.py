@@ -10,7 +10,10 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from mmpa.backends.bag import (
+from mmpa.apps.localize import LocalizeConfig, grid_from_bag, localize_bag
+from mmpa.backends.bag import BagWriter, Recorder
+from mmpa.backends.bag import messages as rm
+from mmpa.backends.bag.reader import (
     BagCamera,
     BagLidar,
     BagOdometry,
@@ -19,12 +22,9 @@ from mmpa.backends.bag import (
     EndOfBagError,
     bag_topics,
 )
-from mmpa.bags import BagWriter, Recorder
-from mmpa.bags import messages as rm
-from mmpa.bags.localize import LocalizeConfig, grid_from_bag, localize_bag
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import R_to_quat_xyzw, T_to_se2, rpy_to_R, se2_to_T, vec6_to_T
-from mmpa.localization.maps import OccupancyGrid
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import R_to_quat_xyzw, T_to_se2, rpy_to_R, se2_to_T, vec6_to_T
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.robot.description import CameraIntrinsics
 from mmpa.robot.interfaces import LaserScan, Odometry, RGBDFrame
 
@@ -326,11 +326,11 @@ class _RosPrecisionWorld:
 def twin_recording(tmp_path_factory):
     """A short standing localization in the twin, recorded; live estimates for two lidars:
     the twin's own, and the same scans at ROS precision."""
+    from mmpa.backends.twin.operator import rough_initial_pose
+    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
+    from mmpa.backends.twin.world import SimWorld
     from mmpa.localization.localizer import make_localizer
-    from mmpa.navigation.mission import localize_standing
-    from mmpa.sim.operator import rough_initial_pose
-    from mmpa.sim.twin_maps import laser_pose2d, twin_map
-    from mmpa.sim.world import SimWorld
+    from mmpa.missions.navigate import localize_standing
 
     d = tmp_path_factory.mktemp("twin")
     out = {}
@@ -439,7 +439,7 @@ def test_localize_cli_writes_the_run_folder(twin_recording, tmp_path) -> None:
     got = bag_topics(out / "estimate.mcap")
     assert got["/amcl_pose"] == ("geometry_msgs/msg/PoseWithCovarianceStamped", 4)
     # the same run on the map given as a map_server file: the same estimates
-    from mmpa.localization.maps import save_map
+    from mmpa.maps.occupancy import save_map
 
     map_yaml = save_map(twin_recording["plain"][1], tmp_path / "map" / "map.yaml")
     out2 = tmp_path / "loc2"
@@ -451,7 +451,7 @@ def test_localize_cli_writes_the_run_folder(twin_recording, tmp_path) -> None:
     # a map without reflectors plus the reflectors as their own file: the same estimates
     import dataclasses
 
-    from mmpa.localization.reflector_map import ReflectorMap, save_reflector_map
+    from mmpa.maps.reflector_map import ReflectorMap, save_reflector_map
 
     grid = twin_recording["plain"][1]
     bare = dataclasses.replace(grid, reflectors=np.zeros((0, 2)), reflector_radius=0.0)
@@ -495,7 +495,7 @@ def test_se2_quaternion_helpers_agree() -> None:
 def test_fast_quaternion_matches_the_geometry_module() -> None:
     from scipy.spatial.transform import Rotation
 
-    from mmpa.geometry import R_to_quat_xyzw
+    from mmpa.core.geometry import R_to_quat_xyzw
 
     Rs = [*Rotation.random(200, random_state=3).as_matrix(), np.diag([1.0, -1, -1])]
     Rs += [np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1]), np.eye(3)]
@@ -524,7 +524,7 @@ def test_foxglove_layout_names_only_recorded_topics() -> None:
     import re
     from pathlib import Path
 
-    from mmpa.bags.record import TOPICS
+    from mmpa.backends.bag.record import TOPICS
 
     text = (Path(__file__).parents[1] / "docs" / "foxglove_layout.json").read_text()
     layout = json.loads(text)
@@ -534,7 +534,7 @@ def test_foxglove_layout_names_only_recorded_topics() -> None:
 
 
 def test_reading_topics_absent_from_the_bag_gives_empty_lists(tmp_path) -> None:
-    from mmpa.backends.bag import read_messages
+    from mmpa.backends.bag.reader import read_messages
 
     path = tmp_path / "one.mcap"
     with BagWriter(path) as w:

@@ -15,9 +15,9 @@ import pytest
 pytest.importorskip("foxglove", reason="foxglove-sdk (dev dependency)")
 websockets = pytest.importorskip("websockets")
 
-from mmpa.bags import messages as rm  # noqa: E402
-from mmpa.bags.view import FoxgloveView  # noqa: E402
-from mmpa.localization.maps import OccupancyGrid  # noqa: E402
+from mmpa.apps.view import FoxgloveView  # noqa: E402
+from mmpa.backends.bag import messages as rm  # noqa: E402
+from mmpa.maps.occupancy import OccupancyGrid  # noqa: E402
 from mmpa.robot.interfaces import LaserScan  # noqa: E402
 
 

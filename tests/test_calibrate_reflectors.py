@@ -27,7 +27,7 @@ from mmpa.calibration.reflector_survey import (
     signed_distance_map,
     survey_reflectors,
 )
-from mmpa.errors import ConfigError, InvalidInputError
+from mmpa.core.errors import ConfigError, InvalidInputError
 
 REFL = np.array([[0.0, 3.0], [4.0, 2.5], [4.5, -2.0], [-1.0, -3.0], [2.0, 0.5]])
 LASER = np.array([0.25, 0.02, 0.01])  # mount [x, y, yaw] in base_link
@@ -245,7 +245,7 @@ def test_twin_survey_cli_short_drive(tmp_path) -> None:
     (measured 4.6 mm mean, 5.6 max; the full survey's 3 mm target is
     test_twin_survey_cli_against_truth, slow)."""
     from mmpa.cli.main import app
-    from mmpa.localization.reflector_map import load_reflector_map
+    from mmpa.maps.reflector_map import load_reflector_map
     from mmpa.robot.robot_file import load_robot, robot_reflector_map
 
     out = tmp_path / "survey"
@@ -276,7 +276,7 @@ def test_twin_survey_cli_against_truth(tmp_path) -> None:
     instead 6.1 mm; the marked map itself 14.3 mm. The files load, and ``mmpa --robot
     robot.yaml navigate`` picks the map up."""
     from mmpa.cli.main import app
-    from mmpa.localization.reflector_map import load_reflector_map
+    from mmpa.maps.reflector_map import load_reflector_map
     from mmpa.robot.robot_file import load_robot, robot_reflector_map
 
     out = tmp_path / "survey"

@@ -15,6 +15,14 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
+from mmpa.backends.twin.calibration_board import (
+    BOARD_BODY,
+    BoardPlacement,
+    CharucoBoardSpec,
+    T_map_board_truth,
+    board_world,
+)
+from mmpa.backends.twin.error_model import ErrorModelConfig
 from mmpa.calibration.charuco import (
     BoardNotFoundError,
     CharucoDetection,
@@ -31,19 +39,11 @@ from mmpa.calibration.hand_eye import (
     pose_error,
     solve_hand_eye,
 )
-from mmpa.errors import InvalidInputError, UnreachableError
-from mmpa.geometry import exp_se3, inv, make_T
+from mmpa.core.errors import InvalidInputError, UnreachableError
+from mmpa.core.geometry import exp_se3, inv, make_T
+from mmpa.core.yamlio import load_yaml
 from mmpa.robot.description import CameraDescription
 from mmpa.robot.kinematics import fk
-from mmpa.sim.calibration_board import (
-    BOARD_BODY,
-    BoardPlacement,
-    CharucoBoardSpec,
-    T_map_board_truth,
-    board_world,
-)
-from mmpa.sim.error_model import ErrorModelConfig
-from mmpa.yamlio import load_yaml
 
 SPEC = CharucoBoardSpec()
 
@@ -161,6 +161,7 @@ def test_joint_calibration_recovers_hand_eye_and_kinematics() -> None:
     MAP estimate finds the hand-eye up to the last link's unobservable DH error E6 (module
     docstring of mmpa.calibration.kinematic), and the calibrated kinematics put the camera
     closer to the truth than the nominal ones over random configurations."""
+    from mmpa.apps.calibrate import last_link_error
     from mmpa.calibration.kinematic import (
         GAUGE_INDICES,
         JointCalibrationConfig,
@@ -168,7 +169,6 @@ def test_joint_calibration_recovers_hand_eye_and_kinematics() -> None:
         fk_point_error,
         random_configurations,
     )
-    from mmpa.experiments.calibrate import last_link_error
 
     dh, dh_true, X_nom, X_true, Y, K, obs = _joint_synthetic(4, 30)
     Y0 = Y @ _random_pose(np.random.default_rng(1), 2e-3, 2e-3)
@@ -209,8 +209,8 @@ def test_last_link_error_is_indistinguishable_from_the_hand_eye() -> None:
     camera exactly where the same arm with a nominal last link puts it at E6 X, in every
     configuration (so no data from a flange-mounted sensor can split them); E6 does not
     depend on q6, and the identity fails for an error on link 5 (the test can tell)."""
+    from mmpa.apps.calibrate import last_link_error
     from mmpa.calibration.kinematic import random_configurations
-    from mmpa.experiments.calibrate import last_link_error
     from mmpa.robot.description import DHParameters
 
     rng = np.random.default_rng(3)
@@ -301,7 +301,7 @@ def test_board_is_where_the_placement_says(world) -> None:
 
 
 def test_placement_for_site_clears_the_desk() -> None:
-    from mmpa.sim.scene import load_scene
+    from mmpa.backends.twin.scene import load_scene
 
     scene = load_scene()
     assert BoardPlacement.for_site(scene, "0") == BoardPlacement()  # no desk at the start
@@ -391,7 +391,7 @@ def test_pose_selection_is_diverse_and_reachable(world) -> None:
 def test_twin_recovers_hand_eye_without_dh_error(tmp_path) -> None:
     """Realistic camera noise, hand-eye error and mount compliance, but exact arm DH: the
     target (0.5 mm, 0.1 deg) is met (measured 0.1-0.2 mm, < 0.03 deg)."""
-    from mmpa.experiments.calibrate import HandEyeConfig, run_hand_eye
+    from mmpa.apps.calibrate import HandEyeConfig, run_hand_eye
 
     errors = ErrorModelConfig(
         profile="realistic", seed=1, kinematics={"dh_length_sigma": 0.0, "dh_angle_sigma_deg": 0.0}

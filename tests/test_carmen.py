@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mmpa.bags.carmen import parse_carmen, relative_pose
-from mmpa.errors import InvalidInputError
-from mmpa.localization.scan_map import occupancy_from_scans, scan_endpoints
+from mmpa.backends.bag.carmen import parse_carmen, relative_pose
+from mmpa.core.errors import InvalidInputError
+from mmpa.maps.from_scans import occupancy_from_scans, scan_endpoints
 
 REAL = Path("/work/shared/real-data/laser")
 
@@ -73,7 +73,7 @@ def test_health_on_a_stretch_of_the_intel_log() -> None:
     """AMCL (beam model) over the first 80 scans of the Intel lab log from the true pose, on
     a map built from them: no ok=False while the error is < 0.2 m (measured over the whole
     log: 0 of 824; here explained >= 0.87, the threshold is 0.5)."""
-    from mmpa.bags.carmen import read_carmen
+    from mmpa.backends.bag.carmen import read_carmen
     from mmpa.localization.amcl import AMCLConfig
     from mmpa.localization.localizer import make_localizer
 

@@ -14,11 +14,11 @@ import yaml
 from matplotlib.image import imread
 from typer.testing import CliRunner
 
+from mmpa.apps.demo import DemoConfig
+from mmpa.backends.twin.scene import load_scene
 from mmpa.cli.main import app
-from mmpa.config import apply_overrides, load_config
-from mmpa.errors import ConfigError
-from mmpa.experiments.demo import DemoConfig
-from mmpa.sim.scene import load_scene
+from mmpa.core.config import apply_overrides, load_config
+from mmpa.core.errors import ConfigError
 
 runner = CliRunner()
 

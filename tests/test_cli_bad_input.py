@@ -52,7 +52,7 @@ def test_output_folder_under_a_file_is_a_clear_error(tmp_path) -> None:
 
 
 def test_console_script_turns_escaping_errors_into_one_line(monkeypatch, capsys) -> None:
-    from mmpa.errors import InvalidInputError
+    from mmpa.core.errors import InvalidInputError
 
     def raises(exc):
         def run() -> None:

@@ -10,11 +10,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.geometry import inv
+from mmpa.backends.twin.error_model import ErrorModelConfig
+from mmpa.backends.twin.mjcf import (
+    MOUNT_JOINTS,
+    build_model,
+    full_reach_configuration,
+    mount_compliance,
+)
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.geometry import inv
 from mmpa.robot.kinematics import fk
-from mmpa.sim.error_model import ErrorModelConfig
-from mmpa.sim.mjcf import MOUNT_JOINTS, build_model, full_reach_configuration, mount_compliance
-from mmpa.sim.world import SimWorld
 
 TILT_DEG = {"realistic": 0.05, "harsh": 0.1}
 

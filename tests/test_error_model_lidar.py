@@ -18,22 +18,22 @@ import mujoco
 import numpy as np
 import pytest
 
-from mmpa.geometry import T_to_vec6, inv, make_T
-from mmpa.localization.maps import Box2D, rasterize
-from mmpa.robot.description import LidarDescription, default_robot
-from mmpa.sim.error_model import ErrorModel, ErrorModelConfig, LidarNoise
-from mmpa.sim.lidar_noise import (
+from mmpa.backends.twin.error_model import ErrorModel, ErrorModelConfig, LidarNoise
+from mmpa.backends.twin.lidar_noise import (
     PULSE_SIGMA,
     SmoothWarp,
     beam_subrays,
     footprint_beams,
     strongest_echo,
 )
-from mmpa.sim.noise import range_noise
-from mmpa.sim.operator import rough_initial_pose
-from mmpa.sim.sensors import SimLidar
-from mmpa.sim.twin_maps import twin_map
-from mmpa.sim.world import SimWorld
+from mmpa.backends.twin.noise import range_noise
+from mmpa.backends.twin.operator import rough_initial_pose
+from mmpa.backends.twin.sensors import SimLidar
+from mmpa.backends.twin.twin_maps import twin_map
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.geometry import T_to_vec6, inv, make_T
+from mmpa.maps.occupancy import Box2D, rasterize
+from mmpa.robot.description import LidarDescription, default_robot
 
 REALISTIC = ErrorModelConfig().lidar
 REFERENCE = ErrorModelConfig(profile="reference").lidar

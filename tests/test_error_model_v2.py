@@ -7,10 +7,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from mmpa.config import load_config
-from mmpa.experiments.mmpa_common import MMPAExperimentConfig
-from mmpa.sim.error_model import PROFILES, ErrorModel, ErrorModelConfig
-from mmpa.sim.noise import (
+from mmpa.backends.twin.error_model import PROFILES, ErrorModel, ErrorModelConfig
+from mmpa.backends.twin.noise import (
     color_session_gain,
     correlated_field,
     depth_bias_pattern,
@@ -18,6 +16,8 @@ from mmpa.sim.noise import (
     resample_to,
     session_disparity,
 )
+from mmpa.core.config import load_config
+from mmpa.harness.twin_site import MMPAExperimentConfig
 
 # --------------------------------------------------------------------------------------------
 # profiles
@@ -65,7 +65,7 @@ def test_profiles_fill_what_is_not_given():
 def test_set_profile_rebases_the_section_and_keeps_the_seed(tmp_path):
     # a saved config lists every field; setting the profile must still switch all of them
     saved = tmp_path / "config.yaml"
-    from mmpa.config import save_config
+    from mmpa.core.config import save_config
 
     save_config(MMPAExperimentConfig(errors=ErrorModelConfig(seed=5)), saved)
     cfg = load_config(
@@ -159,7 +159,7 @@ def test_resample_to_picks_the_nearest_native_pixel():
 
 
 def _sixteen_frames(profile: str):
-    from mmpa.sim.world import SimWorld
+    from mmpa.backends.twin.world import SimWorld
 
     with SimWorld(site="1", errors=ErrorModelConfig(profile=profile, seed=2)) as w:
         w.set_arm_configuration(np.asarray(w.nominal.arm.view_bench))
@@ -205,7 +205,7 @@ def test_sixteen_frame_mean_averages_out_in_the_reference_model():
 
 
 def test_colour_session_gain_acts_on_the_captured_image():
-    from mmpa.sim.world import SimWorld
+    from mmpa.backends.twin.world import SimWorld
 
     cfg = ErrorModelConfig(seed=1, camera={"color_sigma": 0.0, "exposure_gain_sigma": 0.2})
     with SimWorld(site="1", errors=cfg) as w:
@@ -224,7 +224,7 @@ def test_colour_session_gain_acts_on_the_captured_image():
 def test_a_top_level_profile_field_rebases_nothing():
     """Only a section's ``profile`` re-bases that section; a top-level field of that name
     (e.g. the perception data set's) leaves the other fields alone."""
-    from mmpa.config import apply_overrides
+    from mmpa.core.config import apply_overrides
 
     out = apply_overrides({"n": 3, "profile": "realistic"}, ["profile=ideal"])
     assert out == {"n": 3, "profile": "ideal"}

@@ -10,9 +10,9 @@ import time
 
 import pytest
 
-from mmpa.errors import ConfigError, MMPAError
-from mmpa.experiments import executor as ex
-from mmpa.experiments.mmpa_common import TIMING_COLUMNS
+from mmpa.core.errors import ConfigError, MMPAError
+from mmpa.harness import executor as ex
+from mmpa.harness.twin_site import TIMING_COLUMNS
 
 # ---------------------------------------------------------------------------------------
 # the executors on toy jobs (no simulator)
@@ -149,7 +149,7 @@ def _rows(folder) -> list[dict]:
 
 @pytest.fixture(scope="module")
 def serial_run(tmp_path_factory):
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     for k, v in SIM.items():
         os.environ.setdefault(k, v)
@@ -163,9 +163,9 @@ def serial_run(tmp_path_factory):
 # test_localization_experiments.py: test_kidnap_trial_does_not_depend_on_what_ran_before)
 @pytest.mark.slow
 def test_a_trial_alone_gives_its_row_of_the_full_run(serial_run):
-    from mmpa.experiments import mmpa_ipe
-    from mmpa.experiments.mmpa_common import TrialGroup, run_trial_groups
-    from mmpa.experiments.runner import _jsonable
+    from mmpa.experiments.paper000 import ipe as mmpa_ipe
+    from mmpa.harness.runner import _jsonable
+    from mmpa.harness.twin_site import TrialGroup, run_trial_groups
 
     cfg = mmpa_ipe.Config(trials=2, sites=["1"], paper_method=False)
     # a fresh twin: taught anew, trial 1 only (nothing ran before it in that world)
@@ -180,7 +180,7 @@ def test_a_trial_alone_gives_its_row_of_the_full_run(serial_run):
 
 
 def test_two_workers_give_the_rows_of_one(serial_run, tmp_path):
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     out = run_experiment("ipe", tmp_path, trials=2, overrides=OVERRIDES, workers=2)
     assert out.summary["executor"] == "local x2"
@@ -195,7 +195,7 @@ class InterruptError(Exception):
 
 
 def test_an_interrupted_run_resumed_gives_the_rows_of_a_whole_one(serial_run, tmp_path):
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     def stop_after_first(stage: str, frac: float) -> None:
         if "done" in stage and "trial 1/2" in stage:
@@ -223,7 +223,7 @@ def test_an_interrupted_run_resumed_gives_the_rows_of_a_whole_one(serial_run, tm
 
 
 def test_resume_refuses_another_configuration(tmp_path):
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     (tmp_path / "config.yaml").write_text("seed: 5\n")
     with pytest.raises(ConfigError, match=r"config\.yaml.*seed"):
@@ -236,7 +236,7 @@ def test_resume_refuses_another_configuration(tmp_path):
 @pytest.mark.slow
 def test_ray_gives_the_rows_of_one_process(serial_run, tmp_path):
     pytest.importorskip("ray")  # the dev extra has it
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     out = run_experiment("ipe", tmp_path, trials=2, overrides=OVERRIDES, workers=2, executor="ray")
     assert out.summary["executor"] == "ray x2"

@@ -11,7 +11,7 @@ import pytest
 from scipy.linalg import solve_discrete_are
 from scipy.special import erf
 
-from mmpa.errors import InvalidInputError, UnreachableError
+from mmpa.core.errors import InvalidInputError, UnreachableError
 from mmpa.fiducial_search import (
     ArmLimits,
     ConstantVelocityKF,

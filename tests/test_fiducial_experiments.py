@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from mmpa.experiments.runner import run_experiment
+from mmpa.harness.runner import run_experiment
 
 
 # slow (13 s: six passes on two workers, one again alone); the default run keeps the passes
@@ -45,8 +45,8 @@ def test_fiducial_search_experiment_small(tmp_path) -> None:
     # its bag: every state of the kinematic twin, the arm and the photosensor beam
     import numpy as np
 
-    from mmpa.backends.bag import bag_topics, read_messages
-    from mmpa.bags import messages as rm
+    from mmpa.backends.bag import messages as rm
+    from mmpa.backends.bag.reader import bag_topics, read_messages
 
     bag = tmp_path / "bags" / "study-main-strategy-spiral-speed_cm_s-3.0-site-0-trial-0.mcap"
     counts = {k: v[1] for k, v in bag_topics(bag).items()}

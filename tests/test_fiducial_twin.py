@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError
+from mmpa.backends.twin.moving_base import KinematicMovingBase, MovingBaseNoise
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.errors import InvalidInputError
 from mmpa.fiducial_search import SearchConfig, make_strategy, run_pass
-from mmpa.sim.moving_base import KinematicMovingBase, MovingBaseNoise
-from mmpa.sim.world import SimWorld
 
 
 @pytest.fixture(scope="module")

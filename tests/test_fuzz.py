@@ -11,7 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mmpa.errors import ConfigError, InvalidInputError, JointLimitError, MMPAError
+from mmpa.core.errors import ConfigError, InvalidInputError, JointLimitError, MMPAError
 
 FUZZ = settings(
     max_examples=150,
@@ -45,7 +45,7 @@ def _dump(doc: object) -> str:
 @FUZZ
 @given(st.text(max_size=300))
 def test_yaml_text_never_escapes(text: str) -> None:
-    from mmpa.yamlio import load_yaml_text
+    from mmpa.core.yamlio import load_yaml_text
 
     try:
         load_yaml_text(text, "fuzz")
@@ -87,8 +87,8 @@ def test_robot_file_never_escapes(tmp_path_factory, doc: dict, arm: dict) -> Non
     )
 )
 def test_config_overrides_never_escape(sets: list[tuple[str, str]]) -> None:
-    from mmpa.config import load_config
-    from mmpa.experiments.demo import DemoConfig
+    from mmpa.apps.demo import DemoConfig
+    from mmpa.core.config import load_config
 
     try:
         load_config(DemoConfig, None, [f"{k}={v}" for k, v in sets])
@@ -147,7 +147,7 @@ def test_streaming_limiter_stays_within_limits(target: list, v0: list, steps: in
 
 @pytest.mark.parametrize("bad", [math.nan, -1.0, math.inf])
 def test_error_model_fields_refuse_nan_and_negative(bad: float) -> None:
-    from mmpa.sim.error_model import ErrorModelConfig
+    from mmpa.backends.twin.error_model import ErrorModelConfig
 
     with pytest.raises((ValueError, MMPAError)):
         ErrorModelConfig.model_validate({"camera": {"depth_scale_sigma": bad}})
@@ -172,7 +172,7 @@ MAP_KEYS = [
     st.booleans(),
 )
 def test_map_loader_never_escapes(tmp_path_factory, doc: dict, pixels: bytes, good_image) -> None:
-    from mmpa.localization.maps import load_map
+    from mmpa.maps.occupancy import load_map
 
     d = tmp_path_factory.mktemp("map")
     if good_image:  # a valid 4 x 4 PGM so that the YAML fields get exercised
@@ -191,7 +191,7 @@ def test_map_loader_never_escapes(tmp_path_factory, doc: dict, pixels: bytes, go
 @FUZZ
 @given(st.lists(st.dictionaries(st.sampled_from(["id", "x", "y", "radius"]), scalars), max_size=5))
 def test_reflector_map_never_escapes(tmp_path_factory, entries: list) -> None:
-    from mmpa.localization.reflector_map import load_reflector_map
+    from mmpa.maps.reflector_map import load_reflector_map
 
     p = tmp_path_factory.mktemp("rm") / "reflectors.yaml"
     p.write_text(_dump({"frame_id": "map", "reflectors": entries}))

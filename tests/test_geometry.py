@@ -1,4 +1,4 @@
-"""Tests of mmpa.geometry: conventions checked against scipy, group axioms, error metrics."""
+"""Tests of mmpa.core.geometry: conventions checked against scipy, group axioms, error metrics."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
-from mmpa import geometry as g
-from mmpa.errors import InvalidInputError
+from mmpa.core import geometry as g
+from mmpa.core.errors import InvalidInputError
 
 
 def _random_T(rng: np.random.Generator) -> np.ndarray:

@@ -10,15 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mmpa.errors import ConfigError, CorruptTaskError, InvalidInputError
+from mmpa.core.errors import ConfigError, CorruptTaskError, InvalidInputError
 from mmpa.tasks import TaskStore
 from test_tasks import assert_same_task, make_task
 
 
 def test_deeply_nested_yaml_is_a_config_error_not_a_recursion_error(tmp_path: Path) -> None:
     """Audit: ``[`` * 5000 + ``]`` * 5000 raised RecursionError from PyYAML in every reader."""
-    from mmpa.localization.maps import load_map
-    from mmpa.yamlio import load_yaml, load_yaml_text
+    from mmpa.core.yamlio import load_yaml, load_yaml_text
+    from mmpa.maps.occupancy import load_map
 
     text = "[" * 5000 + "]" * 5000
     with pytest.raises(ConfigError, match=r"deep: YAML nested too deeply"):
@@ -69,7 +69,7 @@ def test_a_schema_version_below_1_is_corrupt(tmp_path: Path, version: int) -> No
 
 
 def _room(reflectors: bool = False):
-    from mmpa.localization.maps import Box2D, rasterize
+    from mmpa.maps.occupancy import Box2D, rasterize
 
     walls = [Box2D((0.0, 3.0), (8.0, 0.1)), Box2D((0.0, -3.0), (8.0, 0.1))]
     L = np.array([[3.5, 2.5], [-3.5, 2.5], [3.5, -2.5], [-3.5, -2.5]]) if reflectors else None
@@ -185,8 +185,8 @@ def test_point_cloud_of_text_is_refused() -> None:
 )
 def test_demo_config_refuses_non_finite_and_out_of_range_values(override: str, match: str) -> None:
     """Audit: each of these ``--set`` overrides was accepted by ``load_config``."""
-    from mmpa.config import load_config
-    from mmpa.experiments.demo import DemoConfig
+    from mmpa.apps.demo import DemoConfig
+    from mmpa.core.config import load_config
 
     with pytest.raises(ConfigError, match=match):
         load_config(DemoConfig, None, [override])
@@ -284,9 +284,9 @@ def test_a_profile_that_is_not_a_name_is_refused(value: str) -> None:
     """``--set errors.profile=0:`` (YAML: a mapping) raised ``TypeError: unhashable type``
     from the profile lookup (found by tests/test_fuzz.py under xdist); now a ConfigError
     naming the field."""
-    from mmpa.config import load_config
-    from mmpa.errors import ConfigError
-    from mmpa.experiments.demo import DemoConfig
+    from mmpa.apps.demo import DemoConfig
+    from mmpa.core.config import load_config
+    from mmpa.core.errors import ConfigError
 
     with pytest.raises(ConfigError, match=r"errors\.profile"):
         load_config(DemoConfig, None, [f"errors.profile={value}"])

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError
+from mmpa.core.errors import InvalidInputError
 from mmpa.robot.limits import path_accelerations, path_velocities
 from mmpa.servo.intercept import InterceptLimits, StreamState, intercept_step
 

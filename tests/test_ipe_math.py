@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import apply, inv, make_T, rpy_to_R, vec6_to_T
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import apply, inv, make_T, rpy_to_R, vec6_to_T
 from mmpa.ipe import (
     DEFAULT_ALPHA,
     alpha_vector,
@@ -96,8 +96,8 @@ def test_bad_inputs():
 
 
 def test_repark_motion_returns_the_arm_base_to_its_taught_pose():
-    from mmpa.geometry import se2_compose, se2_inv, se2_to_T
-    from mmpa.missions.mmpa import repark_motion
+    from mmpa.core.geometry import se2_compose, se2_inv, se2_to_T
+    from mmpa.missions.teach_repeat import repark_motion
 
     rng = np.random.default_rng(3)
     M = make_T(rpy_to_R(0.0, 0.0, 0.3), [0.2, -0.05, 0.4])  # arm mounting T_base_link_arm_base

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError, JointLimitError
+from mmpa.core.errors import InvalidInputError, JointLimitError
 from mmpa.planning import retime
 from mmpa.robot.description import ArmDescription
 from mmpa.robot.limits import (
@@ -203,7 +203,7 @@ def test_synchronized_limits_move_along_the_straight_line() -> None:
 
 @pytest.fixture(scope="module")
 def world():
-    from mmpa.sim.world import SimWorld
+    from mmpa.backends.twin.world import SimWorld
 
     w = SimWorld(site="0")
     yield w
@@ -313,7 +313,7 @@ def test_command_stream_is_rate_limited(world, accel: bool) -> None:
 
 
 def test_tmma_replay_retimes_a_path_that_jumps(world) -> None:
-    from mmpa.missions.mmpa import replay_tmma
+    from mmpa.missions.teach_repeat import replay_tmma
     from mmpa.robot.interfaces import PointCloud
     from mmpa.robot.kinematics import fk
     from mmpa.tasks import Task, ToolPath

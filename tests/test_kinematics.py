@@ -9,7 +9,7 @@ import pytest
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
-from mmpa.errors import InvalidInputError, UnreachableError
+from mmpa.core.errors import InvalidInputError, UnreachableError
 from mmpa.robot import kinematics as K  # noqa: N812  (K as in the papers' notation)
 from mmpa.robot.description import ArmDescription, DHParameters
 

@@ -5,7 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError, UnknownNameError
+from mmpa.backends.twin.error_model import ErrorModelConfig
+from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.errors import InvalidInputError, UnknownNameError
 from mmpa.localization.amcl import AMCL, AMCLConfig, odometry_delta, sample_motion
 from mmpa.localization.enhanced import (
     EnhancedAMCL,
@@ -18,9 +21,6 @@ from mmpa.localization.enhanced import (
 )
 from mmpa.localization.localizer import Localizer, make_localizer
 from mmpa.localization.reflectors import rigid_fit_2d
-from mmpa.sim.error_model import ErrorModelConfig
-from mmpa.sim.twin_maps import laser_pose2d, twin_map
-from mmpa.sim.world import SimWorld
 
 
 @pytest.fixture(scope="module")
@@ -254,7 +254,7 @@ def test_raycast_equals_marching_every_point(world, grid) -> None:
 
 def _random_room(seed: int):
     """A 10 m x 6 m room at 5 cm with random boxes (no simulator)."""
-    from mmpa.localization.maps import Box2D, rasterize
+    from mmpa.maps.occupancy import Box2D, rasterize
 
     rng = np.random.default_rng(seed)
     boxes = [
@@ -310,7 +310,7 @@ def test_skip_table_is_each_cells_clearance() -> None:
     cell's square and any occupied or off-map cell's square (brute force over all pairs)."""
     grid, _ = _random_room(5)
     sub = grid.data[40:70, 100:140]  # a 2 m x 1.5 m piece, some boxes in it
-    from mmpa.localization.maps import OccupancyGrid
+    from mmpa.maps.occupancy import OccupancyGrid
 
     g = OccupancyGrid(sub, 0.05)
     amcl = AMCL(g, np.zeros(3), AMCLConfig(laser_model_type="beam"))
@@ -523,7 +523,7 @@ def test_signed_laser_field_is_unbiased_at_the_truth(world, grid) -> None:
     experiment), against the simulator's true pose: with the signed distance to the cell-edge
     surface the joint maximum is within 2 mm of the truth; with the unsigned field (0 inside
     obstacles, so long beams cost nothing) it is pulled away from the walls, by more."""
-    from mmpa.experiments.reflector_dropout import Config, _occluders
+    from mmpa.experiments.paper001.reflector_dropout import Config, _occluders
 
     world.reset("1")
     amcl = AMCL(grid, laser_pose2d(world))

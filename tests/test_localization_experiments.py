@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from mmpa.experiments.runner import run_experiment
+from mmpa.harness.runner import run_experiment
 
 
 def test_localization_experiment_small(tmp_path) -> None:
@@ -14,8 +14,8 @@ def test_localization_experiment_small(tmp_path) -> None:
     holds an estimate per scan, the last one off the recorded truth by the row's error."""
     import numpy as np
 
-    from mmpa.backends.bag import BagPlayback, bag_topics, read_messages
-    from mmpa.bags import messages as rm
+    from mmpa.backends.bag import messages as rm
+    from mmpa.backends.bag.reader import BagPlayback, bag_topics, read_messages
 
     out = run_experiment(
         "localization",
@@ -48,8 +48,8 @@ def test_reflector_dropout_small(tmp_path) -> None:
     the dropout."""
     import numpy as np
 
-    from mmpa.backends.bag import BagPlayback, bag_topics, read_messages
-    from mmpa.bags import messages as rm
+    from mmpa.backends.bag import messages as rm
+    from mmpa.backends.bag.reader import BagPlayback, bag_topics, read_messages
 
     out = run_experiment(
         "reflector-dropout",
@@ -69,7 +69,7 @@ def test_reflector_dropout_small(tmp_path) -> None:
     bag = tmp_path / "bags" / "method-enhanced-site-0-trial-0.mcap"
     counts = {k: v[1] for k, v in bag_topics(bag).items()}
     assert counts["/map"] == 1 and counts["/amcl_pose"] == counts["/scan"] > 50
-    from mmpa.experiments.reflector_dropout import Config
+    from mmpa.experiments.paper001.reflector_dropout import Config
 
     est = [rm.from_pose_cov(m) for m in read_messages(bag, ["/amcl_pose"])["/amcl_pose"]]
     pb = BagPlayback.open(bag)
@@ -100,7 +100,7 @@ def test_kidnap_trial_does_not_depend_on_what_ran_before(monkeypatch) -> None:
     trial gives the same estimates run first or after other methods' and trials' runs."""
     import numpy as np
 
-    from mmpa.experiments import localization as loc_exp
+    from mmpa.experiments.paper001 import localization as loc_exp
 
     estimates: list[np.ndarray] = []
     make = loc_exp.make_localizer
@@ -140,7 +140,7 @@ def test_dropout_trial_does_not_depend_on_the_other_methods() -> None:
     with trilateration and T-AMCL in front of it equals its trace alone."""
     import numpy as np
 
-    from mmpa.experiments import reflector_dropout as rd
+    from mmpa.experiments.paper001 import reflector_dropout as rd
 
     short = {
         "waypoints": [[-0.35, 0.94], [2.4, 0.2]],
@@ -162,7 +162,7 @@ def test_only_our_method_gets_the_calibrated_mount(monkeypatch) -> None:
     calibration per experiment; off: every method nominal."""
     import numpy as np
 
-    from mmpa.experiments import localization as loc_exp
+    from mmpa.experiments.paper001 import localization as loc_exp
 
     calls: list[str] = []
 

@@ -10,15 +10,17 @@ import pytest
 
 from mmpa.localization.health import (
     HealthConfig,
+    correction_plausible,
     crossed_share,
     explained_near,
     explained_share,
+    odometry_correction,
     odometry_plausible,
     position_spread,
     scan_defects,
 )
 from mmpa.localization.localizer import METHODS, make_localizer
-from mmpa.localization.maps import Box2D, rasterize
+from mmpa.maps.occupancy import Box2D, rasterize
 from mmpa.robot.interfaces import LaserScan
 
 RES = 0.05
@@ -240,11 +242,11 @@ def test_no_false_alarm_on_a_twin_drive() -> None:
     ok=False while the error is < 0.2 m (measured: 0 of 188 with the final approach along the
     goal line, 0 of ~390 before; the first updates, 0.39 m off before the filter moves, are
     flagged)."""
-    from mmpa.navigation.mission import NavigateConfig, navigate
+    from mmpa.backends.twin.operator import rough_initial_pose
+    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
+    from mmpa.backends.twin.world import SimWorld
+    from mmpa.missions.navigate import NavigateConfig, navigate
     from mmpa.navigation.planner import CostMap
-    from mmpa.sim.operator import rough_initial_pose
-    from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
-    from mmpa.sim.world import SimWorld
 
     with SimWorld(site="0") as world:
         grid = twin_map(world)
@@ -305,3 +307,88 @@ def test_reflector_fix_far_from_the_estimate_is_flagged(room) -> None:
         if flagged:
             assert bad[0] == 2 and "inconsistent map" in est[2].reason
             assert est[2].health.fix_window == pytest.approx(1.0)
+
+
+def test_odometry_correction_closed_form() -> None:
+    """The estimate ``(1, 2, 0.5)`` made at odometry ``(0, 0, 0)``; the odometry then moves
+    1 m forward and turns 0.3 rad: the prediction is ``(1 + cos 0.5, 2 + sin 0.5, 0.8)``. An
+    estimate there has no correction; one 0.5 m to the prediction's left and turned 0.1 rad
+    more has the correction ``(0, 0.5, 0.1)`` (in the prediction's frame)."""
+    anchor, a_odom, odom = np.array([1.0, 2.0, 0.5]), np.zeros(3), np.array([1.0, 0.0, 0.3])
+    pred = np.array([1 + np.cos(0.5), 2 + np.sin(0.5), 0.8])
+    assert np.allclose(odometry_correction(anchor, a_odom, pred, odom), 0.0, atol=1e-12)
+    left = pred + np.array([-0.5 * np.sin(0.8), 0.5 * np.cos(0.8), 0.1])
+    assert np.allclose(odometry_correction(anchor, a_odom, left, odom), [0, 0.5, 0.1])
+    # the same motion from another odometry origin: the same correction
+    a2 = np.array([-3.0, 4.0, 2.0])
+    o2 = np.array([-3.0 + np.cos(2.0), 4.0 + np.sin(2.0), 2.3])  # 1 m ahead, 0.3 rad
+    assert np.allclose(odometry_correction(anchor, a2, left, o2), [0, 0.5, 0.1])
+    c = HealthConfig()  # 0.3 m + 0.2 travelled, 15 deg + 0.2 turned
+    assert correction_plausible(np.array([0.24, 0.0, 0.0]), 0.0, 0.0, c) == (
+        pytest.approx(0.8),
+        "",
+    )
+    ratio, why = correction_plausible(np.array([0.0, 0.33, 0.0]), 0.0, 0.0, c)
+    assert ratio == pytest.approx(1.1) and "jumped 0.33 m" in why and "at most 0.30 m" in why
+    # 0.49 m after 1 m travelled: 0.49 / (0.3 + 0.2)
+    assert correction_plausible(np.array([0.0, 0.49, 0.0]), 1.0, 0.0, c) == (
+        pytest.approx(0.98),
+        "",
+    )
+    ratio, why = correction_plausible(np.array([0.0, 0.0, np.deg2rad(18)]), 0.0, 0.0, c)
+    assert ratio == pytest.approx(1.2) and "jumped 0.00 m and 18 deg" in why
+    # 18 deg after turning 0.5 rad: 18 / (15 + 0.2 * 28.6) deg
+    ratio, why = correction_plausible(np.array([0.0, 0.0, np.deg2rad(18)]), 0.0, 0.5, c)
+    assert ratio == pytest.approx(np.deg2rad(18) / (np.deg2rad(15) + 0.1)) and why == ""
+
+
+def test_a_jump_against_the_odometry_is_flagged_once(room) -> None:
+    """A stub localizer that follows the odometry (the true path) with small corrections is
+    never flagged; one that jumps 0.5 m sideways while the base moves 3 cm is flagged on
+    that update ("jumped 0.50 m") and not on the next (the flag is an event); one that holds
+    its pose without updating while the odometry moves (a trilateration without a fix),
+    then finds the right pose, is not flagged (the anchor is carried by the odometry)."""
+    from mmpa.localization.amcl import PoseEstimate
+    from mmpa.localization.monitor import MonitoredLocalizer
+
+    g, P, scans = room
+
+    class Stub:
+        name = "stub"
+
+        def __init__(self, offsets, updated) -> None:
+            self.offsets, self.updated, self.k, self.pose = offsets, updated, 0, P[0]
+
+        def initialize(self, pose, cov=None) -> None:
+            self.pose = pose
+
+        def update(self, odom, scan, force=False):
+            k, self.k = self.k, self.k + 1
+            if self.updated[k]:
+                self.pose = odom + self.offsets[k]
+            return PoseEstimate(self.pose, np.eye(3) * 1e-4, 0, bool(self.updated[k]), "stub")
+
+        def pose_at(self, odom):
+            return self.pose
+
+    n, k = len(P), 6
+    small = np.zeros((n, 3))
+    small[::2, :2] = 0.05  # +-5 cm corrections every update: consistent
+    jump = np.zeros((n, 3))
+    jump[k:, 1] = 0.5  # from update k on, 0.5 m to the side
+    held = np.ones(n, bool)
+    held[3:9] = False  # no update (pose held) for 6 updates, 0.4 m of odometry
+    cases = ((small, np.ones(n, bool), []), (jump, np.ones(n, bool), [k]), (small, held, []))
+    for offsets, updated, flagged in cases:
+        loc = MonitoredLocalizer(Stub(offsets, updated), g, np.zeros(3))
+        loc.initialize(P[0])
+        est = [loc.update(o, s) for o, s in zip(P, scans, strict=True)]
+        jumped = [i for i, e in enumerate(est) if "jumped" in e.reason]
+        assert jumped == flagged, [e.reason for e in est]
+        if flagged:
+            assert "jumped 0.50 m and 0 deg against the odometry" in est[k].reason
+            assert est[k].health.correction_xy == pytest.approx(0.5)
+            assert est[k].health.correction_ratio > 1 > est[k + 1].health.correction_ratio
+            assert not est[k].ok
+        idle = [e.health.correction_xy for e, u in zip(est, updated, strict=True) if not u]
+        assert np.all(np.isnan(idle))

@@ -6,8 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import T_to_se2
+from mmpa.backends.twin.error_model import ErrorModelConfig
+from mmpa.backends.twin.lidar_noise import rough_pose
+from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import T_to_se2
 from mmpa.localization.calibration import calibrated_mount, fit_turn_mount
 from mmpa.localization.enhanced import (
     EnhancedConfig,
@@ -19,10 +23,6 @@ from mmpa.localization.enhanced import (
 from mmpa.localization.reflectors import ReflectorDetections, detect_reflectors
 from mmpa.localization.trilateration import trilaterate_bias
 from mmpa.navigation.mount_calibration import calibrate_lidar_mount
-from mmpa.sim.error_model import ErrorModelConfig
-from mmpa.sim.lidar_noise import rough_pose
-from mmpa.sim.twin_maps import laser_pose2d, twin_map
-from mmpa.sim.world import SimWorld
 
 AROUND = np.array([[3.0, 0.5], [-2.0, 2.5], [-1.5, -3.0], [2.5, -2.0], [0.5, 3.5], [-3.5, 0.0]])
 

@@ -10,8 +10,8 @@ import pytest
 import yaml
 from PIL import Image
 
-from mmpa.errors import ConfigError, InvalidInputError
-from mmpa.localization.maps import (
+from mmpa.core.errors import ConfigError, InvalidInputError
+from mmpa.maps.occupancy import (
     Box2D,
     OccupancyGrid,
     load_map,

@@ -7,8 +7,10 @@ from itertools import permutations
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import T_to_se2
+from mmpa.backends.twin.error_model import ErrorModelConfig
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import T_to_se2
 from mmpa.localization.enhanced import ReflectorObserver
 from mmpa.localization.reflectors import (
     DetectionConfig,
@@ -18,8 +20,6 @@ from mmpa.localization.reflectors import (
 )
 from mmpa.localization.trilateration import heading_eq2, trilaterate, trilaterate_eq1
 from mmpa.robot.interfaces import LaserScan
-from mmpa.sim.error_model import ErrorModelConfig
-from mmpa.sim.world import SimWorld
 
 
 @pytest.fixture(scope="module")

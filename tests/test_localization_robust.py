@@ -13,17 +13,17 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError
+from mmpa.backends.twin.error_model import ErrorModelConfig
+from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.errors import InvalidInputError
 from mmpa.localization.amcl import AMCL, AMCLConfig, cluster_labels
 from mmpa.localization.enhanced import EnhancedAMCL, EnhancedConfig
 from mmpa.localization.hector import HectorMatcher
 from mmpa.localization.localizer import METHODS, make_localizer
-from mmpa.localization.maps import Box2D, rasterize
 from mmpa.localization.trilateration import trilaterate
+from mmpa.maps.occupancy import Box2D, rasterize
 from mmpa.robot.interfaces import LaserScan
-from mmpa.sim.error_model import ErrorModelConfig
-from mmpa.sim.twin_maps import laser_pose2d, twin_map
-from mmpa.sim.world import SimWorld
 
 LASER = np.array([0.2, 0.0, 0.0])
 

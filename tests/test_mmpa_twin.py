@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from mmpa.backends.twin.error_model import ErrorModelConfig
 from mmpa.cli.main import app
-from mmpa.experiments.mmpa_common import MMPAExperimentConfig, TwinSite, ipe_rows
+from mmpa.harness.twin_site import MMPAExperimentConfig, TwinSite, ipe_rows
 from mmpa.robot.interfaces import PointCloud
-from mmpa.sim.error_model import ErrorModelConfig
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +57,7 @@ def test_teaching_records_what_the_robot_sees(site1):
     assert np.linalg.norm(tip_B - tip_true_B) < 0.005
     # the operator put the needle 30 mm above the red dot (truth from the scene)
     dot = next(i for i in site1.scene.workbench("site1_bench").items if i.kind == "dot")
-    from mmpa.sim.operator import T_map_desk
+    from mmpa.backends.twin.operator import T_map_desk
 
     T = T_map_desk(site1.world, "site1_bench")
     dot_map = T[:3, :3] @ np.array([*dot.xy, 0.03]) + T[:3, 3]
@@ -97,7 +97,7 @@ def test_a_witness_view_confirms_the_estimate_or_refuses_a_slid_one(site1, monke
     tolerance; a final refinement that slid 6 mm at the converged view (injected: the
     witness's own refinement is left alone) is refused, and no estimate comes out."""
     import mmpa.ipe.loop as loop
-    from mmpa.geometry import make_T
+    from mmpa.core.geometry import make_T
 
     def witnessed():
         a = site1.automation_config()
@@ -139,7 +139,7 @@ def test_failed_registration_stops_ipe_and_the_arm_stays(site1):
     pts = rng.uniform(-0.3, 0.3, (5000, 3)) + np.array([0.0, 0.0, 0.6])
     junk = PointCloud(pts, rng.uniform(0, 1, (5000, 3)))
     task = dataclasses.replace(site1.taught.task, cloud=junk)
-    from mmpa.missions.mmpa import automate
+    from mmpa.missions.teach_repeat import automate
 
     w = site1.world
     res = automate(task, arm=w.arm, camera=w.camera, gripper=w.gripper, robot=w.nominal)
@@ -158,7 +158,7 @@ def test_unreachable_sampling_pose_is_refused_before_motion(site1):
     q = site1.taught.task.q_sample.copy()
     q[1] = 10.0  # beyond the joint limit
     task = dataclasses.replace(site1.taught.task, q_sample=q)
-    from mmpa.missions.mmpa import automate
+    from mmpa.missions.teach_repeat import automate
 
     res = automate(task, arm=w.arm, camera=w.camera, gripper=w.gripper, robot=w.nominal)
     assert not res.ok and "joint limits" in res.reason
@@ -169,8 +169,8 @@ def test_path_out_of_reach_reparks_then_hits_the_dot(site1):
     """A base parked 30 cm behind its taught pose leaves the taught path out of the arm's
     reach: without a re-park MMPA refuses before any motion; with one (default) the base
     navigates by the IPE estimate, IPE runs again and the needle still hits the dot."""
-    from mmpa.geometry import se2_compose, se2_to_T
-    from mmpa.missions.mmpa import AutomationConfig
+    from mmpa.core.geometry import se2_compose, se2_to_T
+    from mmpa.missions.teach_repeat import AutomationConfig
 
     w = site1.world
     pose = se2_compose(w.scene.site("1").pose2d, np.array([-0.30, 0.0, 0.0]))
@@ -218,7 +218,7 @@ def test_cli_teach_run_and_missing_task(tmp_path):
 @pytest.mark.slow
 def test_scenes_ablation_refuses_the_pure_color_plane(tmp_path):
     """Table A.7's pattern: no pose from a plain plane, a good one from textured geometry."""
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     out = run_experiment("scenes", tmp_path, trials=1, overrides=["scenes=[A.1, B.3]"])
     rows = {r["scene"]: r for r in out.rows}
@@ -232,7 +232,7 @@ def test_ipe_and_path_targets_at_every_site(tmp_path):
     """Issue 18 goals under realistic on a small sample: IPE success 1.0, mean E_t <= 1 mm,
     E_R <= 0.003; needle tip mean <= 0.5 mm and max <= 1.5 mm, TMMA tens of mm (measured:
     E_t 0.55/0.44/0.51 mm, E_R 0.0009/0.0007/0.0007, tip max 0.39 mm)."""
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     out = run_experiment("path-accuracy", tmp_path, trials=5, overrides=["paper_method=false"])
     for site in ("1", "2", "2'"):
@@ -249,7 +249,7 @@ def test_site2_prime_parking_tilts_like_table2(tmp_path):
     """Sampled parking at Site 2' gets z, roll and pitch from the bump; they must stay in the
     paper's range (Table 2: tz -4 +- 5 mm, pitch 0.8 +- 2.7 deg), not lift the drive wheels
     onto the bump (the old placement: tz -63 mm, pitch 5.7 deg)."""
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     out = run_experiment("parking", tmp_path, trials=12, overrides=['sites=["2\'"]'])
     tz = np.array([r["park_tz"] for r in out.rows])
@@ -276,7 +276,7 @@ class _ScaledDepthCamera:
 def test_depth_scale_fault_is_refused_and_the_arm_stays(site1, caplog):
     """A 3 % depth-scale fault (the audit's case: ok with a 14 mm wrong dT_B) is seen by the
     projective refinement's scale estimate and refused; the arm does not move after."""
-    from mmpa.missions.mmpa import automate
+    from mmpa.missions.teach_repeat import automate
 
     w = site1.world
     site1.park()

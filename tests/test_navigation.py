@@ -7,15 +7,15 @@ import itertools
 import numpy as np
 import pytest
 
-from mmpa.errors import UnreachableError
+from mmpa.backends.twin.error_model import ErrorModelConfig
+from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.errors import UnreachableError
 from mmpa.localization.localizer import make_localizer
-from mmpa.localization.maps import Box2D, rasterize
+from mmpa.maps.occupancy import Box2D, rasterize
+from mmpa.missions.navigate import NavigateConfig, navigate, staged_path
 from mmpa.navigation.follower import PathFollower, within_tolerance
-from mmpa.navigation.mission import NavigateConfig, navigate, staged_path
 from mmpa.navigation.planner import CostMap, PlannerConfig, plan_path
-from mmpa.sim.error_model import ErrorModelConfig
-from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
-from mmpa.sim.world import SimWorld
 
 
 def test_astar_goes_around_a_wall_and_keeps_clear() -> None:

@@ -7,7 +7,7 @@ import json
 from typer.testing import CliRunner
 
 from mmpa.cli.main import app
-from mmpa.localization.maps import load_map
+from mmpa.maps.occupancy import load_map
 
 runner = CliRunner()
 
@@ -33,7 +33,7 @@ def test_navigate_prints_parking_error(tmp_path) -> None:
     # map explains >= 0.97 of the beams on the twin's drives against the 0.5 'lost' level)
     assert s["localization_updates_not_ok"] == 0 and s["localization_explained_min"] > 0.8
     # --record: the drive as a ROS 2 bag (the run itself unchanged: the recorder only observes)
-    from mmpa.backends.bag import bag_topics
+    from mmpa.backends.bag.reader import bag_topics
 
     topics = bag_topics(bag)
     assert topics["/scan"][0] == "sensor_msgs/msg/LaserScan" and topics["/scan"][1] > 50

@@ -5,14 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.errors import ConfigError, InvalidInputError, UnknownNameError
-from mmpa.experiments.perception_data import (
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.errors import ConfigError, InvalidInputError, UnknownNameError
+from mmpa.core.geometry import apply, inv
+from mmpa.harness.perception_data import (
     DatasetConfig,
     load_dataset,
     render_dataset,
     save_dataset,
 )
-from mmpa.geometry import apply, inv
 from mmpa.perception import CLASSES
 from mmpa.perception.locate import (
     DepthMissingError,
@@ -24,7 +25,6 @@ from mmpa.perception.locate import (
     project,
 )
 from mmpa.perception.preprocess import dark_preprocess, equalize_histogram, is_dark, mean_filter
-from mmpa.sim.world import SimWorld
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +52,7 @@ def test_dataset_is_labelled_and_reproducible(tiny, tmp_path):
 def test_segmentation_box_contains_the_true_projected_center():
     """The labelled box of an object in view holds the projection of its true center."""
     with SimWorld(site="0") as w:
-        from mmpa.experiments.perception_data import (
+        from mmpa.harness.perception_data import (
             DESK_PARK,
             boxes_from_segmentation,
             random_table_scene,
@@ -108,7 +108,7 @@ def test_preprocessing_against_independent_computations():
 
 def test_locate_against_the_simulator_truth():
     with SimWorld(site="0") as w:
-        from mmpa.experiments.perception_data import (
+        from mmpa.harness.perception_data import (
             DESK_PARK,
             boxes_from_segmentation,
             random_table_scene,

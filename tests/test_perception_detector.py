@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.experiments.perception_data import DatasetConfig, render_dataset
-from mmpa.geometry import apply, inv
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.geometry import apply, inv
+from mmpa.harness.perception_data import DatasetConfig, render_dataset
 from mmpa.perception import CLASSES
 from mmpa.perception.locate import project
 from mmpa.perception.ssd import Detector, default_weights_path
 from mmpa.perception.train import evaluate
-from mmpa.sim.world import SimWorld
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +29,7 @@ def test_shipped_weights_detect_fresh_renders(det):
 
 
 def test_detection_on_the_wrist_camera_locates_the_true_object(det, tmp_path):
-    from mmpa.experiments.perception_data import DESK_PARK, random_table_scene
+    from mmpa.harness.perception_data import DESK_PARK, random_table_scene
     from mmpa.servo.grasp import look_configuration
 
     with SimWorld(site="0", episode=5) as w:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from mmpa.errors import ConfigError, InvalidInputError
+from mmpa.core.errors import ConfigError, InvalidInputError
 from mmpa.perception.ssd import (
     SSD,
     Detector,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.experiments.perception_data import Dataset, DatasetConfig, render_dataset
+from mmpa.harness.perception_data import Dataset, DatasetConfig, render_dataset
 from mmpa.perception import CLASSES
 
 torch = pytest.importorskip("torch")
@@ -86,11 +86,11 @@ def test_target_success_and_recall_precision_count_by_hand():
 
 
 def test_desk_search_finds_the_legs_only_where_the_map_puts_them():
-    from mmpa.experiments.mobile_manipulation import desk_front_legs, desk_in_scan
-    from mmpa.experiments.perception_data import DESK_PARK
-    from mmpa.geometry import se2_to_T
-    from mmpa.sim.twin_maps import laser_pose2d
-    from mmpa.sim.world import SimWorld
+    from mmpa.backends.twin.twin_maps import laser_pose2d
+    from mmpa.backends.twin.world import SimWorld
+    from mmpa.core.geometry import se2_to_T
+    from mmpa.experiments.paper001.mobile_manipulation import desk_front_legs, desk_in_scan
+    from mmpa.harness.perception_data import DESK_PARK
 
     with SimWorld(site="0") as w:
         legs = desk_front_legs(w)
@@ -114,9 +114,9 @@ def test_desk_search_finds_the_legs_only_where_the_map_puts_them():
 
 @pytest.mark.slow
 def test_mobile_manipulation_one_run(tmp_path):
-    from mmpa.backends.bag import BagPlayback, bag_topics, read_messages
-    from mmpa.bags import messages as rm
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.backends.bag import messages as rm
+    from mmpa.backends.bag.reader import BagPlayback, bag_topics, read_messages
+    from mmpa.harness.runner import run_experiment
 
     out = run_experiment(
         "mobile-manipulation",
@@ -145,13 +145,13 @@ def test_servo_views_put_the_tcp_above_the_target_in_the_simulator():
     """Servo views (the tracking grasp's approach): after the arm takes the configuration,
     the simulator's TCP lies ``standoff`` in range above the target's top, within the jitter
     sideways, tool z pointing down; rendered servo views label the target."""
-    from mmpa.experiments.perception_data import (
+    from mmpa.backends.twin.world import SimWorld
+    from mmpa.harness.perception_data import (
         DESK_PARK,
         _footprint,
         random_table_scene,
         servo_view_configuration,
     )
-    from mmpa.sim.world import SimWorld
 
     cfg = DatasetConfig(work_servo_standoff=(0.15, 0.25), work_servo_jitter=0.02)
     rng = np.random.default_rng(7)
@@ -183,12 +183,12 @@ def test_turn_to_heading_aligns_the_true_base_on_the_estimate():
     """The mobile-manipulation turn at the entry pose: steering on the enhanced-AMCL estimate
     only, the simulator's true heading ends within 0.01 rad of the goal heading (it starts
     0.35 rad off, about the most the desk search leaves) and the base stays in place."""
-    from mmpa.experiments.mobile_manipulation import turn_to_heading
-    from mmpa.experiments.perception_data import DESK_PARK
-    from mmpa.geometry import wrap_angle
+    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
+    from mmpa.backends.twin.world import SimWorld
+    from mmpa.core.geometry import wrap_angle
+    from mmpa.experiments.paper001.mobile_manipulation import turn_to_heading
+    from mmpa.harness.perception_data import DESK_PARK
     from mmpa.localization.localizer import make_localizer
-    from mmpa.sim.twin_maps import laser_pose2d, twin_map
-    from mmpa.sim.world import SimWorld
 
     park = np.array(DESK_PARK)
     start = np.array([park[0], park[1] - 0.25, park[2] - 0.35])

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.errors import UnreachableError
-from mmpa.geometry import make_T, rot_x
+from mmpa.core.errors import UnreachableError
+from mmpa.core.geometry import make_T, rot_x
 from mmpa.planning import PathPlanConfig, plan_joint_path, retime
 from mmpa.robot.description import default_robot
 from mmpa.robot.kinematics import fk

@@ -13,9 +13,9 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 import numpy as np
 import pytest
 
+from mmpa.backends.twin.error_model import ErrorModelConfig
+from mmpa.backends.twin.world import SimWorld
 from mmpa.robot.interfaces import Arm, Base, Camera, Gripper
-from mmpa.sim.error_model import ErrorModelConfig
-from mmpa.sim.world import SimWorld
 
 
 class OnlyArm:
@@ -84,10 +84,10 @@ class OnlyBase:
 
 
 def test_teach_from_a_trajectory_then_ipe_over_protocols_only() -> None:
-    from mmpa.missions.mmpa import AutomationConfig, automate, teach, trajectory_recorder
+    from mmpa.backends.twin.operator import get_demonstration, sampling_joints
+    from mmpa.missions.teach_repeat import AutomationConfig, automate, teach, trajectory_recorder
     from mmpa.planning import plan_joint_path, retime
     from mmpa.robot.kinematics import fk
-    from mmpa.sim.operator import get_demonstration, sampling_joints
 
     with SimWorld(site="1", errors=ErrorModelConfig(profile="reference")) as w:
         arm, cam = OnlyArm(w.arm), OnlyCamera(w.camera)
@@ -128,7 +128,7 @@ def test_teach_from_a_trajectory_then_ipe_over_protocols_only() -> None:
 def test_grasp_over_protocols_only() -> None:
     from tests.test_servo_twin import _ball_under_the_look_view
 
-    from mmpa.experiments.grasp import SERVO_RESOLUTION, OracleDetector
+    from mmpa.experiments.paper001.grasp import SERVO_RESOLUTION, OracleDetector
     from mmpa.servo.grasp import GraspConfig, TrackingGrasp
 
     with SimWorld(site="0") as w:
@@ -183,10 +183,10 @@ class OnlyMobileRobot:
 def test_navigation_over_protocols_only() -> None:
     """navigate() drives the twin through an object without truth or world: it reaches the
     site on the estimate; the truth, given only for the evaluation, scores it."""
+    from mmpa.backends.twin.operator import rough_initial_pose
+    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
     from mmpa.localization.localizer import make_localizer
-    from mmpa.navigation.mission import NavigateConfig, navigate
-    from mmpa.sim.operator import rough_initial_pose
-    from mmpa.sim.twin_maps import laser_pose2d, twin_map
+    from mmpa.missions.navigate import NavigateConfig, navigate
 
     with SimWorld(site="0", errors=ErrorModelConfig(profile="reference")) as w:
         grid = twin_map(w)
@@ -209,11 +209,11 @@ def test_hand_eye_calibration_over_protocols_only() -> None:
     flange-mounted sensors can determine) within 1 mm / 0.1 deg (measured 0.42 mm, 0.013
     deg; 12 views identify the depth axis less well than the default 40), far better than
     the nominal one (2.86 mm, 1.32 deg); the arm settled after every move."""
+    from mmpa.apps.calibrate import last_link_error
+    from mmpa.backends.twin.calibration_board import BoardPlacement, board_world
+    from mmpa.backends.twin.scene import load_scene
     from mmpa.calibration.hand_eye import pose_error
-    from mmpa.calibration.procedure import HandEyeProcedureConfig, calibrate_hand_eye_on_robot
-    from mmpa.experiments.calibrate import last_link_error
-    from mmpa.sim.calibration_board import BoardPlacement, board_world
-    from mmpa.sim.scene import load_scene
+    from mmpa.missions.hand_eye import HandEyeProcedureConfig, calibrate_hand_eye_on_robot
 
     scene = load_scene()
     cfg = HandEyeProcedureConfig(stations=12)
@@ -249,8 +249,8 @@ def test_hand_eye_calibration_over_protocols_only() -> None:
 def test_hand_eye_procedure_refuses_bad_input_before_moving() -> None:
     """A malformed board guess or reference configuration is refused with a clear error,
     before the arm moves (a recording fake arm: no motion logged)."""
-    from mmpa.calibration.procedure import calibrate_hand_eye_on_robot
-    from mmpa.errors import InvalidInputError
+    from mmpa.core.errors import InvalidInputError
+    from mmpa.missions.hand_eye import calibrate_hand_eye_on_robot
     from mmpa.robot.description import default_robot
 
     class NoMotion:  # a fake arm that records what it is asked
@@ -293,13 +293,13 @@ def test_reflector_survey_drive_over_protocols_only() -> None:
     (measured 3.3 mm mean, 5.0 max: two stops of 10 scans only)."""
     import dataclasses
 
+    from mmpa.backends.twin.operator import rough_initial_pose
+    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
     from mmpa.calibration.reflector_survey import SurveyConfig, match_reflectors, survey_reflectors
-    from mmpa.calibration.survey_drive import SurveyDriveConfig, survey_drive, survey_stations
     from mmpa.localization.localizer import make_localizer
-    from mmpa.navigation.mission import localize_standing
+    from mmpa.missions.navigate import localize_standing
+    from mmpa.missions.survey_drive import SurveyDriveConfig, survey_drive, survey_stations
     from mmpa.navigation.planner import CostMap
-    from mmpa.sim.operator import rough_initial_pose
-    from mmpa.sim.twin_maps import laser_pose2d, twin_map, twin_nav_map
 
     errors = ErrorModelConfig.from_profile("realistic", seed=0)
     with SimWorld(site="0", errors=errors) as w:

@@ -14,17 +14,17 @@ import shutil
 import numpy as np
 import pytest
 
-from mmpa.backends.bag import BagCamera, BagPlayback, bag_topics, read_messages
-from mmpa.bags import messages as rm
-from mmpa.errors import ConfigError
-from mmpa.geometry import inv
+from mmpa.backends.bag import messages as rm
+from mmpa.backends.bag.reader import BagCamera, BagPlayback, bag_topics, read_messages
+from mmpa.core.errors import ConfigError
+from mmpa.core.geometry import inv
 
 SETS = ["sites=[1]", "paper_method=false"]
 
 
 @pytest.fixture(scope="module")
 def ipe_runs(tmp_path_factory):
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     d = tmp_path_factory.mktemp("exp_record")
     bags = d / "bags"
@@ -35,7 +35,7 @@ def ipe_runs(tmp_path_factory):
 
 
 def test_every_trial_records_its_own_bag_and_the_rows_are_unchanged(ipe_runs) -> None:
-    from mmpa.experiments.mmpa_common import TIMING_COLUMNS, trial_bag_name
+    from mmpa.harness.twin_site import TIMING_COLUMNS, trial_bag_name
 
     rec, plain = ipe_runs["rec"], ipe_runs["plain"]
     assert [p.name for p in ipe_runs["bags"].iterdir()] == ["method-mmpa-site-1-trial-0.mcap"]
@@ -53,7 +53,7 @@ def test_every_trial_records_its_own_bag_and_the_rows_are_unchanged(ipe_runs) ->
 
 
 def test_the_trial_bag_holds_the_trial(ipe_runs) -> None:
-    from mmpa.experiments.mmpa_common import MMPAExperimentConfig, pose_errors
+    from mmpa.harness.twin_site import MMPAExperimentConfig, pose_errors
     from mmpa.robot.description import default_robot
     from mmpa.tasks import read_bundle
 
@@ -90,7 +90,7 @@ def test_the_trial_bag_holds_the_trial(ipe_runs) -> None:
 
 
 def test_an_experiment_that_cannot_record_says_so(tmp_path) -> None:
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     with pytest.raises(ConfigError, match="'planning-convergence' cannot record"):
         run_experiment("planning-convergence", tmp_path / "out", trials=1, record=tmp_path / "bags")

@@ -13,9 +13,9 @@ import math
 import numpy as np
 import pytest
 
-from mmpa.backends.bag import BagPlayback, bag_topics, read_messages
-from mmpa.bags import messages as rm
-from mmpa.bags.record import ARM_FRAMES, JOINT_NAMES
+from mmpa.backends.bag import messages as rm
+from mmpa.backends.bag.reader import BagPlayback, bag_topics, read_messages
+from mmpa.backends.bag.record import ARM_FRAMES, JOINT_NAMES
 from mmpa.robot.description import default_robot
 from mmpa.robot.kinematics import fk
 
@@ -25,11 +25,11 @@ RATE = 50.0  # Hz: the needle task's path rate (and the recorder's least joint r
 def _spied_run(db, record=None) -> dict:
     """``run_task`` with spies: the captures and scans it read, the paths it executed, the
     parking localizer's estimates (stamp, pose after each update) and its final estimate."""
-    from mmpa.experiments import mmpa_common
-    from mmpa.experiments.mmpa_twin import run_task
+    from mmpa.apps.teach_run import run_task
+    from mmpa.backends.twin.sensors import SimCamera, SimLidar
+    from mmpa.backends.twin.world import SimArm
+    from mmpa.harness import twin_site as mmpa_common
     from mmpa.localization.enhanced import EnhancedAMCL
-    from mmpa.sim.sensors import SimCamera, SimLidar
-    from mmpa.sim.world import SimArm
 
     seen: dict = {"captures": [], "scans": [], "follow": [], "updates": [], "parked": []}
     cap, scan, follow = SimCamera.capture, SimLidar.scan, SimArm.follow
@@ -73,7 +73,7 @@ def _spied_run(db, record=None) -> dict:
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    from mmpa.experiments.mmpa_twin import teach_task
+    from mmpa.apps.teach_run import teach_task
 
     d = tmp_path_factory.mktemp("run_record")
     db = d / "tasks.db"
@@ -220,10 +220,10 @@ def test_recorded_run_has_the_map_and_the_parking_localization(runs) -> None:
     /amcl_pose holds one estimate per localizer update, equal to what the localizer
     returned (in the recorded run and in the unrecorded one), the last one being the
     parking estimate handed to IPE."""
-    from mmpa.bags.localize import grid_from_bag
-    from mmpa.experiments.mmpa_common import MMPAExperimentConfig
-    from mmpa.sim.twin_maps import twin_map
-    from mmpa.sim.world import SimWorld
+    from mmpa.apps.localize import grid_from_bag
+    from mmpa.backends.twin.twin_maps import twin_map
+    from mmpa.backends.twin.world import SimWorld
+    from mmpa.harness.twin_site import MMPAExperimentConfig
 
     with SimWorld(errors=MMPAExperimentConfig().errors, site="1") as world:
         grid = twin_map(world)
@@ -272,9 +272,9 @@ def test_run_command_has_a_record_option() -> None:
 def test_recorder_samples_a_move_and_unhooks(tmp_path) -> None:
     """A bare world: one ``move_joints`` sampled every 20 ms through the motion, ending on the
     arm's final encoders; closing the recorder gives the world its own ``step`` back."""
-    from mmpa.bags import BagWriter, Recorder
-    from mmpa.errors import InvalidInputError, MMPAError
-    from mmpa.sim.world import SimWorld
+    from mmpa.backends.bag import BagWriter, Recorder
+    from mmpa.backends.twin.world import SimWorld
+    from mmpa.core.errors import InvalidInputError, MMPAError
 
     with SimWorld() as world, BagWriter(tmp_path / "m.mcap") as bag:
         with pytest.raises(InvalidInputError, match="joint_rate_hz"):
@@ -317,8 +317,8 @@ def _spied_demo(out, record=None) -> dict:
     """A short ``run_demo`` (no MMPA stage, a 3 s drive on the enhanced AMCL, then the
     capture, whose arm move to the bench view is the motion under test), with a spy on the
     simulator's ``move_joints``: (sim time before, after, encoders after) of every move."""
-    from mmpa.experiments.demo import DemoConfig, run_demo
-    from mmpa.sim.world import SimArm
+    from mmpa.apps.demo import DemoConfig, run_demo
+    from mmpa.backends.twin.world import SimArm
 
     moves: list = []
     move = SimArm.move_joints

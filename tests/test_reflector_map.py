@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import yaml
 
-from mmpa.errors import ConfigError, InvalidInputError
-from mmpa.localization.maps import OccupancyGrid, load_map, save_map, write_pgm
-from mmpa.localization.reflector_map import (
+from mmpa.core.errors import ConfigError, InvalidInputError
+from mmpa.maps.occupancy import OccupancyGrid, load_map, save_map, write_pgm
+from mmpa.maps.reflector_map import (
     ReflectorMap,
     load_reflector_map,
     save_reflector_map,

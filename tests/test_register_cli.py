@@ -12,11 +12,11 @@ from PIL import Image
 from scipy.spatial import cKDTree
 from typer.testing import CliRunner
 
-from mmpa.bags import BagWriter
-from mmpa.bags import messages as rm
-from mmpa.bags.register import load_intrinsics, load_png_frame
+from mmpa.apps.register import load_intrinsics, load_png_frame
+from mmpa.backends.bag import BagWriter
+from mmpa.backends.bag import messages as rm
 from mmpa.cli.register import register
-from mmpa.geometry import apply, inv
+from mmpa.core.geometry import apply, inv
 
 DATA = Path(__file__).parent / "data" / "desk"
 K_FILE = DATA / "intrinsics.K.txt"

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.errors import ConfigError, InvalidInputError
-from mmpa.geometry import exp_se3, inv, make_T, rotation_error, rpy_to_R, translation_error
+from mmpa.core.errors import ConfigError, InvalidInputError
+from mmpa.core.geometry import exp_se3, inv, make_T, rotation_error, rpy_to_R, translation_error
 from mmpa.registration import (
     IcpScale,
     Registration,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import exp_se3, inv, rotation_error, translation_error
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import exp_se3, inv, rotation_error, translation_error
 from mmpa.registration import (
     ProjectiveConfig,
     normal_map,

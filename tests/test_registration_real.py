@@ -14,7 +14,7 @@ import pytest
 from PIL import Image
 from scipy.spatial import cKDTree
 
-from mmpa.geometry import apply, inv
+from mmpa.core.geometry import apply, inv
 from mmpa.registration import (
     Prepared,
     ProjectiveConfig,

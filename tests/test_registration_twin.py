@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from mmpa.geometry import inv, rotation_error, translation_error
+from mmpa.core.geometry import inv, rotation_error, translation_error
 from mmpa.registration import RegistrationConfig, prepare, register
 from mmpa.robot.interfaces import PointCloud
 
@@ -33,8 +33,8 @@ class TwinPairs:
 
 
 def _twin_pairs(profile: str) -> TwinPairs:
-    from mmpa.sim.error_model import ErrorModelConfig
-    from mmpa.sim.world import SimWorld
+    from mmpa.backends.twin.error_model import ErrorModelConfig
+    from mmpa.backends.twin.world import SimWorld
 
     with SimWorld(site="1", errors=ErrorModelConfig(profile=profile)) as w:
         q = np.array(w.nominal.arm.view_bench)

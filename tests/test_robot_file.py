@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from mmpa.errors import ConfigError
+from mmpa.core.errors import ConfigError
 from mmpa.robot.description import RobotDescription, default_robot, set_default_robot
 from mmpa.robot.kinematics import fk
 from mmpa.robot.robot_file import (
@@ -138,7 +138,7 @@ def test_robot_option_reaches_the_twin(tmp_path, monkeypatch) -> None:
         assert res.exit_code == 0, res.output
         assert "name: my-robot" in res.output and "length: 0.2" in res.output
         assert default_robot().gripper.length == 0.2
-        from mmpa.sim.world import SimWorld
+        from mmpa.backends.twin.world import SimWorld
 
         with SimWorld() as w:  # the twin builds the robot of the file
             assert w.nominal.name == "my-robot"

@@ -13,8 +13,8 @@ from pydantic import BaseModel
 from typer.testing import CliRunner
 
 from mmpa.cli.main import app
-from mmpa.errors import ConfigError, UnknownNameError
-from mmpa.experiments import runner as rn
+from mmpa.core.errors import ConfigError, UnknownNameError
+from mmpa.harness import runner as rn
 
 
 @pytest.fixture
@@ -102,7 +102,7 @@ def test_markdown_table_escapes_pipes_in_cells():
     columns (the mobile-manipulation header 'grasping | detected' broke its table)."""
     import re
 
-    from mmpa.experiments.runner import markdown_table
+    from mmpa.harness.runner import markdown_table
 
     text = markdown_table(["object", "grasping | detected"], [["a|b", 0.5], ["c", float("nan")]])
     lines = text.strip().splitlines()
@@ -127,7 +127,7 @@ def test_executor_options_only_for_experiments_that_run_trials_on_one(toy, tmp_p
 
 
 def test_compare_profile_runs_each_profile_and_tabulates_them(monkeypatch, tmp_path):
-    from mmpa.sim.error_model import ErrorModelConfig
+    from mmpa.backends.twin.error_model import ErrorModelConfig
 
     mod = types.ModuleType("mmpa_toy_twin")
 

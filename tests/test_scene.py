@@ -1,6 +1,6 @@
 """The scene file and the MJCF generator: the default world matches the papers, malformed
 files fail naming the field, and the generated model honours the naming contract of
-``mmpa.sim.mjcf``."""
+``mmpa.backends.twin.mjcf``."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import yaml
 
-from mmpa.errors import ConfigError, UnknownNameError
+from mmpa.backends.twin.mjcf import GROUP, build_model, desk_item_pose
+from mmpa.backends.twin.scene import default_scene_path, load_scene
+from mmpa.core.errors import ConfigError, UnknownNameError
 from mmpa.robot.description import default_robot
-from mmpa.sim.mjcf import GROUP, build_model, desk_item_pose
-from mmpa.sim.scene import default_scene_path, load_scene
 
 # paper 000 §4.2: park poses as position and unit quaternion (x, y, z, w)
 PAPER_SITES = {

@@ -11,13 +11,13 @@ import mujoco
 import numpy as np
 import pytest
 
-from mmpa.errors import ConfigError
+from mmpa.backends.twin.error_model import ErrorModelConfig, SceneChange
+from mmpa.backends.twin.mjcf import build_model
+from mmpa.backends.twin.scene import DeskItem, SceneConfig, load_scene, parse_scene
+from mmpa.backends.twin.scene_change import apply_scene_change, draw_scene_change, loose_items
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.errors import ConfigError
 from mmpa.robot.description import default_robot
-from mmpa.sim.error_model import ErrorModelConfig, SceneChange
-from mmpa.sim.mjcf import build_model
-from mmpa.sim.scene import DeskItem, SceneConfig, load_scene, parse_scene
-from mmpa.sim.scene_change import apply_scene_change, draw_scene_change, loose_items
-from mmpa.sim.world import SimWorld
 
 LOOSE = {
     "site1_bench": {

@@ -13,17 +13,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError, SimulationError, UnknownNameError
-from mmpa.geometry import se2_compose, se2_inv
-from mmpa.robot.description import (
-    BaseDescription,
-    CameraDescription,
-    LidarDescription,
-    PhotoSensorDescription,
-)
-from mmpa.robot.interfaces import Camera, Lidar, PhotoSensor, deproject
-from mmpa.sim.error_model import CameraNoise, ErrorModelConfig, LidarNoise, OdometryNoise
-from mmpa.sim.noise import (
+from mmpa.backends.twin.error_model import CameraNoise, ErrorModelConfig, LidarNoise, OdometryNoise
+from mmpa.backends.twin.noise import (
     axial_depth_sigma,
     bernoulli_indices,
     color_noise,
@@ -33,13 +24,22 @@ from mmpa.sim.noise import (
     range_noise,
     standard_normal_f32,
 )
-from mmpa.sim.sensors import (
+from mmpa.backends.twin.sensors import (
     SimCamera,
     SimLidar,
     SimOdometry,
     SimPhotoSensor,
     T_world_camera_optical,
 )
+from mmpa.core.errors import InvalidInputError, SimulationError, UnknownNameError
+from mmpa.core.geometry import se2_compose, se2_inv
+from mmpa.robot.description import (
+    BaseDescription,
+    CameraDescription,
+    LidarDescription,
+    PhotoSensorDescription,
+)
+from mmpa.robot.interfaces import Camera, Lidar, PhotoSensor, deproject
 
 # --------------------------------------------------------------------------------------------
 # the test scene

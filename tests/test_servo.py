@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import apply, exp_se3
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import apply, exp_se3
 from mmpa.robot.description import default_robot
 from mmpa.robot.kinematics import jacobian, manipulability
 from mmpa.servo.ibvs import (
@@ -114,7 +114,7 @@ def test_kalman_filter_tracks_constant_velocity():
 def test_top_surface_and_grasp_height_on_a_synthetic_depth_image():
     """An upright cylinder straight under a down-looking camera: the depth image is computed
     by ray casting (top disk at ``h``, desk at 0), the top center and heights come back."""
-    from mmpa.geometry import make_T
+    from mmpa.core.geometry import make_T
     from mmpa.servo.target import desk_height, grasp_height, top_surface
 
     H, r, h, c = 0.45, 0.031, 0.20, np.array([0.012, -0.02])

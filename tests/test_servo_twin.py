@@ -7,10 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError, UnknownNameError
-from mmpa.experiments.grasp import Config, OracleDetector, grasp_trial, make_grasper
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.errors import InvalidInputError, UnknownNameError
+from mmpa.experiments.paper001.grasp import Config, OracleDetector, grasp_trial, make_grasper
 from mmpa.servo.grasp import GraspConfig, TrackingGrasp
-from mmpa.sim.world import SimWorld
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +75,7 @@ def test_tracking_grasp_of_a_moving_ball(world):
 def _cleared_desk(world, lighting: str):
     """The robot parked at the grasp desk, every object off the desk, ``lighting`` set;
     returns ``(nominal robot, desk top z (map), T_map_arm_base)``."""
-    from mmpa.experiments.perception_data import DESK_PARK, desk_frame, random_table_scene
+    from mmpa.harness.perception_data import DESK_PARK, desk_frame, random_table_scene
 
     world.reset(pose2d=np.asarray(DESK_PARK, float), settle=0.2)
     world.set_lighting(lighting)
@@ -87,7 +87,7 @@ def _cleared_desk(world, lighting: str):
 def _look_down(world, rb, top: float, height: float) -> None:
     """The arm to the look configuration ``height`` m above the grasp experiment's look
     target on the desk top ``top`` (map z)."""
-    from mmpa.experiments.grasp import LOOK_TARGET
+    from mmpa.experiments.paper001.grasp import LOOK_TARGET
     from mmpa.servo.grasp import look_configuration
 
     look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])
@@ -98,7 +98,7 @@ def _ball_under_the_look_view(world, height: float):
     """The tennis ball alone on the cleared desk under the grasp experiment's look target,
     the arm at the look configuration ``height`` m above the desk; returns the nominal
     robot."""
-    from mmpa.experiments.grasp import LOOK_TARGET
+    from mmpa.experiments.paper001.grasp import LOOK_TARGET
 
     rb, top, T_map_B = _cleared_desk(world, "normal")
     p_map = (T_map_B @ np.array([LOOK_TARGET[0], LOOK_TARGET[1], 0.0, 1.0]))[:3]
@@ -113,7 +113,7 @@ def _descent_after_unseen_turn(world, updates: bool, abort: float = 0.0):
     (a turn it has not seen yet); runs the descent (acceleration-limited, stopping on an
     innovation above ``abort`` m, 0: never) and returns the predictor after it, the number
     of detections it took during the descent and the grasper."""
-    from mmpa.experiments.grasp import SERVO_RESOLUTION
+    from mmpa.experiments.paper001.grasp import SERVO_RESOLUTION
     from mmpa.servo.predictor import ConstantVelocityKF
 
     class CountingKF(ConstantVelocityKF):
@@ -176,7 +176,7 @@ def test_a_grasp_cell_run_alone_repeats_its_trials_in_the_full_table(tmp_path):
     """Every trial draws its scene and sensor noise from its own seed (``set_episode``): the
     tennis ball's trial is the same, to the float, whether the cube's trial ran before it in
     the same world or not (before, a subset run saw other scenes than the full table)."""
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     keys = ("detected", "grasped", "ticks", "lost_ticks", "close_dx", "close_dy", "time_to_grasp")
     both = run_experiment(
@@ -197,8 +197,8 @@ def test_a_grasp_cell_run_alone_repeats_its_trials_in_the_full_table(tmp_path):
     assert a["grasped"]
     assert {k: a[k] for k in keys} == {k: b[k] for k in keys}
     # its bag: a camera frame at every servo tick, the arm at >= 50 Hz
-    from mmpa.backends.bag import bag_topics, read_messages
-    from mmpa.bags import messages as rm
+    from mmpa.backends.bag import messages as rm
+    from mmpa.backends.bag.reader import bag_topics, read_messages
 
     bag = tmp_path / "bags" / "object-tennis_ball-lighting-normal-site-0-trial-0.mcap"
     counts = {k: v[1] for k, v in bag_topics(bag).items()}
@@ -220,7 +220,7 @@ def test_a_tracking_trial_is_the_same_alone_and_on_two_workers(tmp_path):
     0.1 m/s trial run alone in this process is the same, to the float, as inside a run of
     two speeds on two worker processes (``--workers 2``; before, the operator's turns and the
     scenes came from one stream per run)."""
-    from mmpa.experiments.runner import run_experiment
+    from mmpa.harness.runner import run_experiment
 
     keys = ("grasped", "ticks", "lost_ticks", "close_dx", "close_dy", "time_to_grasp")
     common = ["predictor=[true]", "weights=oracle"]
@@ -264,8 +264,8 @@ def _bottle_under_the_first_view(world, cfg: GraspConfig):
     straight above it is a white disc clipped at 255, which the shipped detector takes for
     the yida bottle (water bottle score < 0.05). Runs the tracking grasp; returns its result
     and the bottle's height above the desk top 2 s after the lift (physics)."""
-    from mmpa.experiments.grasp import LOOK_HEIGHT, LOOK_TARGET, run_grasp
-    from mmpa.experiments.perception_data import _footprint
+    from mmpa.experiments.paper001.grasp import LOOK_HEIGHT, LOOK_TARGET, run_grasp
+    from mmpa.harness.perception_data import _footprint
     from mmpa.perception.ssd import Detector
 
     rb, top, T_map_B = _cleared_desk(world, "high")
@@ -296,7 +296,7 @@ def test_weak_detections_count_only_on_the_track(world):
     """Track-aware threshold (improvement): with no box at the detector's threshold, a weak
     box of the object's class is taken when it is located within ``track_gate`` of the
     track, and only then (checked against the ball's true position)."""
-    from mmpa.experiments.grasp import SERVO_RESOLUTION
+    from mmpa.experiments.paper001.grasp import SERVO_RESOLUTION
 
     class UnsureOracle(OracleDetector):
         """The truth boxes, every one scored 0.2 (under the threshold 0.3)."""
@@ -331,8 +331,8 @@ def test_top_center_of_a_lying_stick_beside_a_taller_cup(world):
     it inside the stick's box: the top center comes from the surface that fits the box (the
     stick, within 3 mm of the truth, also when the desk height is 3 cm too low), not from the
     highest pixels of the box (the cup's rim, 45 mm off)."""
-    from mmpa.experiments.grasp import LOOK_TARGET, SERVO_RESOLUTION
-    from mmpa.geometry import apply, inv
+    from mmpa.core.geometry import apply, inv
+    from mmpa.experiments.paper001.grasp import LOOK_TARGET, SERVO_RESOLUTION
     from mmpa.robot.kinematics import fk
     from mmpa.servo.target import desk_height, top_surface
 
@@ -413,7 +413,7 @@ def test_a_missed_grasp_is_tried_again(world, attempts):
     nothing. With ``max_attempts`` 3 the gripper opens, the arm tracks the ball again and
     the second attempt holds it (physics: off the desk 2 s later, between the fingers); with
     one attempt the run ends "missed"."""
-    from mmpa.experiments.grasp import LOOK_HEIGHT, SERVO_RESOLUTION, held_in_the_physics
+    from mmpa.experiments.paper001.grasp import LOOK_HEIGHT, SERVO_RESOLUTION, held_in_the_physics
 
     rb = _ball_under_the_look_view(world, LOOK_HEIGHT)
     top = world.scene.grasp_desk.size[2]
@@ -449,7 +449,7 @@ def test_a_missed_grasp_is_tried_again(world, attempts):
 def test_the_operator_takes_the_object_again_after_a_miss(world):
     """After ``release`` the object lies still; ``resume`` (a missed grasp) moves it again at
     the operator's speed from where it lies; an object off the desk stays where it is."""
-    from mmpa.experiments.grasp import Operator
+    from mmpa.experiments.paper001.grasp import Operator
 
     _ball_under_the_look_view(world, 0.45)
     op = Operator(world, "tennis_ball", 0.1, np.random.default_rng(1))

@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mmpa.backends.bag import BagPlayback
-from mmpa.bags import BagWriter
-from mmpa.bags import messages as rm
-from mmpa.bags.localize import LocalizeConfig, _laser_pose, run_localize
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import make_T
-from mmpa.localization.maps import OccupancyGrid
+from mmpa.apps.localize import LocalizeConfig, _laser_pose, run_localize
+from mmpa.backends.bag import BagWriter
+from mmpa.backends.bag import messages as rm
+from mmpa.backends.bag.reader import BagPlayback
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import make_T
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan, Odometry
 
 # ----------------------------------------------------------------------- the lidar mount
@@ -173,8 +173,8 @@ def test_map_cells_in_range_are_kept_exactly() -> None:
 
 @pytest.mark.parametrize("seed", [-1, True, 1.5, "7"])
 def test_a_scene_seed_numpy_cannot_take_is_refused_at_load(seed) -> None:
-    from mmpa.errors import ConfigError
-    from mmpa.sim.scene import load_scene, parse_scene
+    from mmpa.backends.twin.scene import load_scene, parse_scene
+    from mmpa.core.errors import ConfigError
 
     doc = load_scene().model_dump(mode="json")
     doc["seed"] = seed
@@ -188,8 +188,8 @@ def test_snapshot_of_a_negative_seed_scene_is_one_clear_line(tmp_path) -> None:
     import yaml
     from typer.testing import CliRunner
 
+    from mmpa.backends.twin.scene import load_scene
     from mmpa.cli.main import app
-    from mmpa.sim.scene import load_scene
 
     doc = load_scene().model_dump(mode="json")
     doc["seed"] = -1
@@ -245,7 +245,7 @@ def test_tasks_list_refuses_a_task_whose_blobs_are_missing_or_cut(store_db, sql,
     from typer.testing import CliRunner
 
     from mmpa.cli.main import app
-    from mmpa.errors import CorruptTaskError
+    from mmpa.core.errors import CorruptTaskError
     from mmpa.tasks import TaskStore
 
     with TaskStore(store_db) as s:
@@ -306,7 +306,7 @@ def _jump_path() -> np.ndarray:
 
 
 def test_a_tmma_replay_that_must_be_slowed_says_so(caplog) -> None:
-    from mmpa.missions.mmpa import replay_tmma
+    from mmpa.missions.teach_repeat import replay_tmma
     from mmpa.robot.description import RobotDescription
     from mmpa.robot.kinematics import fk
 
@@ -319,7 +319,7 @@ def test_a_tmma_replay_that_must_be_slowed_says_so(caplog) -> None:
         path, _ = replay_tmma(task, arm=arm, gripper=None, arm_model=rob.arm, T_flange_tool=tcp)
     assert path.time_scale > 20  # 1.5 rad in 20 ms is 24x joint 1's velocity limit
     (rec,) = [r for r in caplog.records if "slowed" in r.getMessage()]
-    assert rec.levelname == "WARNING" and rec.name == "mmpa.missions.mmpa"
+    assert rec.levelname == "WARNING" and rec.name == "mmpa.missions.teach_repeat"
     assert f"slowed {path.time_scale:.2f}x" in rec.getMessage() and "task jump" in rec.getMessage()
     assert arm.calls[0] == "move_joints" and "follow" in arm.calls
     # a path within the limits replays at its own pace, with no warning
@@ -333,7 +333,7 @@ def test_a_tmma_replay_that_must_be_slowed_says_so(caplog) -> None:
 
 
 def test_tmma_refuses_joints_that_are_not_the_tool_path_before_moving() -> None:
-    from mmpa.missions.mmpa import replay_tmma, tool_path_mismatch
+    from mmpa.missions.teach_repeat import replay_tmma, tool_path_mismatch
     from mmpa.robot.description import RobotDescription
     from mmpa.robot.kinematics import fk
 
@@ -359,10 +359,10 @@ def test_tmma_accepts_a_task_taught_with_a_slightly_different_arm_model() -> Non
     kinematic error (1 mm on a and d, 0.1 deg on the angles): the disagreement is real but
     within MAX_TOOL_MISMATCH (measured over 30 harsh draws on a taught path: <= 9.3 mm /
     0.67 deg; here one draw on the jump path)."""
-    from mmpa.missions.mmpa import MAX_TOOL_MISMATCH, check_tool_path
+    from mmpa.backends.twin.error_model import ErrorModel, ErrorModelConfig
+    from mmpa.missions.teach_repeat import MAX_TOOL_MISMATCH, check_tool_path
     from mmpa.robot.description import RobotDescription
     from mmpa.robot.kinematics import fk
-    from mmpa.sim.error_model import ErrorModel, ErrorModelConfig
 
     rob = RobotDescription()
     tcp = rob.gripper.T_flange_tcp

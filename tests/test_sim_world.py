@@ -11,11 +11,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError, JointLimitError, UnknownNameError
-from mmpa.geometry import T_to_vec6, inv
-from mmpa.sim.error_model import ErrorModelConfig, KinematicsError
-from mmpa.sim.scene import SpeedBump, load_scene
-from mmpa.sim.world import SimWorld
+from mmpa.backends.twin.error_model import ErrorModelConfig, KinematicsError
+from mmpa.backends.twin.scene import SpeedBump, load_scene
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.errors import InvalidInputError, JointLimitError, UnknownNameError
+from mmpa.core.geometry import T_to_vec6, inv
 
 try:  # the nominal model's forward kinematics (fallback: the DH chain written out here)
     from mmpa.robot.kinematics import fk
@@ -576,7 +576,7 @@ def test_a_lying_stick_placed_at_rest_stays_put(world):
     """The blue stick lies on its side; placed at rest on the grasp desk at 12 random poses,
     the physics (simulator truth) keeps it within 15 mm after 3 s (rolling friction: without
     it a third of the placements rolled 6-163 mm)."""
-    from mmpa.experiments.perception_data import _footprint, desk_frame
+    from mmpa.harness.perception_data import _footprint, desk_frame
 
     world.reset(pose2d=np.array([2.7, 0.85, np.pi / 2]), settle=0.1)
     T, _, _ = desk_frame(world)

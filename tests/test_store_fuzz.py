@@ -15,7 +15,7 @@ import pytest
 from hypothesis import HealthCheck, assume, event, given, settings
 from hypothesis import strategies as st
 
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 from mmpa.tasks import Task, TaskStore
 from test_tasks import assert_same_task, make_task
 

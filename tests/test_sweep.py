@@ -21,9 +21,9 @@ from pydantic import BaseModel
 from typer.testing import CliRunner
 
 from mmpa.cli.sweep import register
-from mmpa.errors import ConfigError
-from mmpa.experiments import runner as rn
-from mmpa.experiments.sweep import load_sweep, parse_sweep, plan_points, run_sweep
+from mmpa.core.errors import ConfigError
+from mmpa.harness import runner as rn
+from mmpa.harness.sweep import load_sweep, parse_sweep, plan_points, run_sweep
 
 
 class _Inner(BaseModel):

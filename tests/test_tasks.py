@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mmpa.errors import InvalidInputError, MMPAError, UnknownNameError
-from mmpa.geometry import make_T, rpy_to_R
+from mmpa.core.errors import InvalidInputError, MMPAError, UnknownNameError
+from mmpa.core.geometry import make_T, rpy_to_R
 from mmpa.robot.interfaces import PointCloud
 from mmpa.tasks import (
     FORMAT_VERSION,

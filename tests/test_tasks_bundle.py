@@ -12,7 +12,7 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from mmpa.errors import InvalidInputError
+from mmpa.core.errors import InvalidInputError
 from mmpa.tasks import (
     FORMAT_VERSION,
     CorruptTaskError,

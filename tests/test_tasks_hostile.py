@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 
 import mmpa.tasks.bundle as bundle_mod
 from mmpa.cli.main import app
-from mmpa.errors import InvalidInputError, MMPAError
+from mmpa.core.errors import InvalidInputError, MMPAError
 from mmpa.tasks import (
     FORMAT_VERSION,
     CorruptTaskError,

@@ -10,9 +10,9 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 import numpy as np
 import pytest
 
-from mmpa.geometry import apply, inv
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.geometry import apply, inv
 from mmpa.robot.kinematics import fk
-from mmpa.sim.world import SimWorld
 
 
 @pytest.fixture(scope="module")

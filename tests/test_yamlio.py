@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from mmpa.errors import ConfigError
-from mmpa.yamlio import load_yaml, load_yaml_text
+from mmpa.core.errors import ConfigError
+from mmpa.core.yamlio import load_yaml, load_yaml_text
 
 BOMB = "\n".join(
     ["a: &a [x, x, x, x, x, x, x, x, x, x]"]

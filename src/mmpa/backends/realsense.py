@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.errors import InvalidInputError, MMPAError
+from mmpa.core.errors import InvalidInputError, MMPAError
 from mmpa.robot.description import CameraIntrinsics
 from mmpa.robot.interfaces import RGBDFrame
 

@@ -15,7 +15,7 @@
   (:func:`limit_setpoint`; ``qdd_max``, or the hard ``qdd_stream_max`` with
   ``stream_acceleration_limited`` off);
 - a protective or emergency stop (read from RTDE receive) aborts a stream and refuses every
-  motion with :class:`~mmpa.errors.MMPAError` until it is cleared on the pendant.
+  motion with :class:`~mmpa.core.errors.MMPAError` until it is cleared on the pendant.
 
 ``control`` and ``receive`` may be given (objects with ur-rtde's ``RTDEControlInterface`` /
 ``RTDEReceiveInterface`` methods); otherwise they are made from ``host``.
@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.errors import InvalidInputError, MMPAError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError, MMPAError
+from mmpa.core.geometry import Array
 from mmpa.robot.limits import (
     JointLimits,
     StreamLimitsSwitch,
@@ -174,7 +174,7 @@ class URArm(StreamLimitsSwitch):
         """A person's demonstration: freedrive mode on, the encoders read at ``rate_hz``
         (timed by the controller) until ``done()`` or ``max_seconds``, freedrive off.
         Returns ``t`` (N,) s from 0 and ``q`` (N, 6) rad (for
-        :func:`mmpa.missions.mmpa.trajectory_recorder`)."""
+        :func:`mmpa.missions.teach_repeat.trajectory_recorder`)."""
         if not (np.isfinite(rate_hz) and 0 < rate_hz <= self.cfg.frequency):
             raise InvalidInputError(f"rate_hz must be in (0, {self.cfg.frequency}], got {rate_hz}")
         self.stop_stream()

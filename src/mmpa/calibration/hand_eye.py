@@ -38,8 +38,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mmpa.errors import InvalidInputError, MMPAError, UnreachableError
-from mmpa.geometry import Array, inv, make_T
+from mmpa.core.errors import InvalidInputError, MMPAError, UnreachableError
+from mmpa.core.geometry import Array, inv, make_T
 from mmpa.robot.description import DHParameters
 
 __all__ = [

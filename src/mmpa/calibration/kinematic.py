@@ -48,8 +48,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from mmpa.errors import InvalidInputError, MMPAError
-from mmpa.geometry import Array, make_T
+from mmpa.core.errors import InvalidInputError, MMPAError
+from mmpa.core.geometry import Array, make_T
 from mmpa.robot.description import DHParameters
 
 __all__ = [

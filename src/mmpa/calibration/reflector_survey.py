@@ -47,7 +47,7 @@ earlier reflector map: control points) and :func:`match_reflectors` (one-to-one 
 for evaluation against a truth).
 
 Units: m, rad. Pure functions over numpy arrays; bad input raises
-:class:`~mmpa.errors.InvalidInputError` (:class:`SurveyError` when nothing can be fitted).
+:class:`~mmpa.core.errors.InvalidInputError` (:class:`SurveyError` when nothing can be fitted).
 """
 
 from __future__ import annotations
@@ -62,8 +62,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array
 
 __all__ = [
     "ReflectorFit",

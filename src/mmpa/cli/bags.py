@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from mmpa.cli.common import console, fail, out_dir, robot_reflector_map
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 
 __all__ = ["register"]
 
@@ -30,7 +30,7 @@ def _robot_laser_pose(ctx: typer.Context) -> tuple[float, float, float] | None:
     None without one (the twin's mount never stands in for a real robot's)."""
     if ctx.find_root().params.get("robot") is None:
         return None
-    from mmpa.geometry import T_to_se2
+    from mmpa.core.geometry import T_to_se2
     from mmpa.robot.description import default_robot
 
     x, y, yaw = (float(v) for v in T_to_se2(default_robot().lidar.T_base_link_laser))
@@ -78,8 +78,7 @@ def localize_cmd(
     """Run a localizer over a bag's scans and odometry; write estimate.csv, estimate.mcap
     (/amcl_pose), trajectory.png and summary.json (with the error when the bag has
     /truth/base_pose)."""
-    from mmpa.backends.bag import BagTopics
-    from mmpa.bags.localize import LocalizeConfig, run_localize
+    from mmpa.apps.localize import BagTopics, LocalizeConfig, run_localize
 
     try:
         cfg = LocalizeConfig(

@@ -1,6 +1,6 @@
 """``mmpa calibrate``: calibrations run in the twin (``hand-eye``: the wrist camera on the
 flange from a ChArUco board; ``lidar-mount``; ``reflectors``: the reflector map surveyed
-from a drive; see :mod:`mmpa.experiments.calibrate`)."""
+from a drive; see :mod:`mmpa.apps.calibrate`)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from typing import Annotated
 import typer
 
 from mmpa.cli.common import console, fail
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 
 __all__ = ["calibrate_app", "register"]
 
@@ -62,7 +62,7 @@ def hand_eye_cmd(
     _choice("method", method, ("joint", "opencv"))
     _twin_env()
     try:
-        from mmpa.experiments.calibrate import HandEyeConfig, run_hand_eye
+        from mmpa.apps.calibrate import HandEyeConfig, run_hand_eye
 
         cfg = HandEyeConfig(
             site=site,
@@ -106,7 +106,7 @@ def lidar_mount_cmd(
     _choice("profile", profile, _PROFILES)
     _twin_env()
     try:
-        from mmpa.experiments.calibrate import run_lidar_mount
+        from mmpa.apps.calibrate import run_lidar_mount
 
         with console.status("turning on the spot"):
             s = run_lidar_mount(site, seed, profile, out)  # type: ignore[arg-type]
@@ -182,7 +182,7 @@ def reflectors_cmd(
         raise typer.BadParameter("--route needs at least one site")
     _twin_env()
     try:
-        from mmpa.experiments.calibrate import ReflectorSurveyConfig, run_reflector_survey
+        from mmpa.apps.calibrate import ReflectorSurveyConfig, run_reflector_survey
 
         cfg = ReflectorSurveyConfig(
             site=site,

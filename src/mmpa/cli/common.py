@@ -12,7 +12,7 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 
 console = Console()
 

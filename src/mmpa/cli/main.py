@@ -26,10 +26,10 @@ from mmpa.cli.common import (
 )
 from mmpa.cli.perception import perception_app
 from mmpa.cli.tasks import tasks_app
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 
 if TYPE_CHECKING:
-    from mmpa.experiments.demo import DemoConfig
+    from mmpa.apps.demo import DemoConfig
 
 app = typer.Typer(
     help="mmpa: precise mobile manipulation with a MuJoCo digital twin.",
@@ -50,8 +50,8 @@ def _demo_config(
 ) -> DemoConfig:
     """DemoConfig from defaults, the YAML file, ``--profile``, ``--seed`` and ``--set`` (in
     that order)."""
-    from mmpa.config import load_config
-    from mmpa.experiments.demo import DemoConfig
+    from mmpa.apps.demo import DemoConfig
+    from mmpa.core.config import load_config
 
     sets = [*profile_overrides(profile), f"errors.seed={seed}", *(set_ or [])]
     return load_config(DemoConfig, config, sets)
@@ -100,7 +100,7 @@ def _root(
     """mmpa: precise mobile manipulation with a MuJoCo digital twin."""
     if robot is not None:
         _robot.use_robot_file(robot)
-    from mmpa.log import setup_logging
+    from mmpa.core.log import setup_logging
 
     level = log_level or ("debug" if verbose > 1 else "info" if verbose else None)
     if level is not None:
@@ -131,7 +131,7 @@ def demo(
     ] = None,
 ) -> None:
     """Drive Site 0 -> Site 1 in the built-in world, capture RGB-D and a scan, write pictures."""
-    from mmpa.experiments.demo import run_demo
+    from mmpa.apps.demo import run_demo
 
     try:
         cfg = _demo_config(config, seed, set_, profile)
@@ -155,7 +155,7 @@ def sim_snapshot(
     set_: SetOpt = None,
 ) -> None:
     """Place the robot at a site and write the camera, depth and top-down pictures."""
-    from mmpa.experiments.demo import snapshot
+    from mmpa.apps.demo import snapshot
 
     try:
         cfg = _demo_config(config, seed, set_, profile)
@@ -199,7 +199,7 @@ def experiment(
     ] = None,
 ) -> None:
     """Reproduce a paper table or figure: writes results.csv, report.md, plots, config.yaml."""
-    from mmpa.experiments.runner import EXPERIMENTS, run_experiment
+    from mmpa.harness.runner import EXPERIMENTS, run_experiment
 
     if name is None:
         t = Table(title="experiments", show_header=True)
@@ -236,8 +236,8 @@ def experiment(
 def _mmpa_config(
     config: Path | None, seed: int, set_: list[str] | None, profile: str | None = None
 ):
-    from mmpa.config import load_config
-    from mmpa.experiments.mmpa_common import MMPAExperimentConfig
+    from mmpa.core.config import load_config
+    from mmpa.harness.twin_site import MMPAExperimentConfig
 
     sets = [*profile_overrides(profile), f"errors.seed={seed}", *(set_ or [])]
     return load_config(MMPAExperimentConfig, config, sets)
@@ -255,7 +255,7 @@ def teach(
     set_: SetOpt = None,
 ) -> None:
     """One-shot teaching in the twin (paper 000 §3.1): record a task and store it."""
-    from mmpa.experiments.mmpa_twin import teach_task
+    from mmpa.apps.teach_run import teach_task
 
     try:
         with console.status(f"teaching {task} at site {site}"):
@@ -290,7 +290,7 @@ def run_cmd(
     ] = None,
 ) -> None:
     """Automation stage in the twin (paper 000 §3.2): park, IPE, adapted path, execute."""
-    from mmpa.experiments.mmpa_twin import run_task
+    from mmpa.apps.teach_run import run_task
 
     try:
         with console.status(f"running {task}"):

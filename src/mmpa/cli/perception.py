@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from mmpa.cli.common import ProfileOpt, console, fail
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 
 perception_app = typer.Typer(help="Object detector (paper 001 §3.2.1): data, training, evaluation.")
 
@@ -54,7 +54,8 @@ def dataset_cmd(
 ) -> None:
     """Render a labelled data set in the twin."""
     try:
-        from mmpa.experiments.perception_data import DatasetConfig, render_dataset, save_dataset
+        from mmpa.apps.perception import render
+        from mmpa.harness.perception_data import DatasetConfig
 
         cfg = DatasetConfig(
             n_images=n,
@@ -65,8 +66,7 @@ def dataset_cmd(
             **({"lighting": _weights(lighting)} if lighting else {}),
             **({"profile": profile} if profile else {}),
         )
-        ds = render_dataset(cfg, log=_log)
-        save_dataset(ds, out)
+        ds = render(cfg, out, _log)
     except MMPAError as e:
         fail(e)
     _log(f"wrote {len(ds)} images to {out}")
@@ -96,45 +96,17 @@ def train_cmd(
 ) -> None:
     """Train the SSD on rendered images (reproducible: seeded data and training)."""
     try:
-        from mmpa.perception import require_torch
+        from mmpa.apps.perception import train_detector
 
-        require_torch()
-        from mmpa.experiments.perception_data import (
-            Dataset,
-            DatasetConfig,
-            load_dataset,
-            render_dataset,
-        )
-        from mmpa.perception.ssd import Detector
-        from mmpa.perception.train import TrainConfig, choose_threshold, train
-
-        ds = (
-            Dataset.concat([load_dataset(p) for p in data])
-            if data
-            else render_dataset(DatasetConfig(n_images=n, seed=seed))
-        )
-        cfg = TrainConfig(
-            epochs=epochs,
-            lr=lr,
-            seed=seed,
-            threads=threads,
-            max_minutes=max_minutes,
-            dark_preprocess_prob=dark_preprocess_prob,
-            crop_prob=crop_prob,
-        )
-        model = Detector.load(init).model.train() if init else None
-        out.parent.mkdir(parents=True, exist_ok=True)
-        det = train(ds, cfg, model=model, log=_log, on_epoch=lambda d: d.save(out))
-        det.meta["data"] = [str(p) for p in data] if data else f"rendered n={n} seed={seed}"
-        det.meta["train_config"] = cfg.model_dump(mode="json")
-        if init:
-            det.meta["fine_tuned_from"] = str(init)
-        if val:
-            th, table = choose_threshold(det, load_dataset(val), threads=threads)
-            det.cfg.score_threshold = th
-            det.meta["threshold_choice"] = {"val": str(val), "recall_precision": table}
-            _log(f"operating threshold {th:.2f} (max F1 on {val})")
-        det.save(out)
+        settings = {
+            "epochs": epochs,
+            "lr": lr,
+            "threads": threads,
+            "max_minutes": max_minutes,
+            "dark_preprocess_prob": dark_preprocess_prob,
+            "crop_prob": crop_prob,
+        }
+        train_detector(out, data, n, seed, settings, init, val, _log)
     except MMPAError as e:
         fail(e)
     _log(f"wrote {out}")
@@ -154,38 +126,18 @@ def prune_cmd(
 ) -> None:
     """NetAdapt-style channel pruning of a trained detector."""
     try:
-        from mmpa.perception import require_torch
+        from mmpa.apps.perception import prune_detector
 
-        require_torch()
-        from mmpa.experiments.perception_data import Dataset, load_dataset
-        from mmpa.perception.prune import PruneConfig, macs, netadapt
-        from mmpa.perception.ssd import Detector
-
-        det = Detector.load(weights)
-        ds = Dataset.concat([load_dataset(p) for p in data])
-        cfg = PruneConfig(
-            target_ratio=target,
-            short_term_batches=short_term_batches,
-            long_term_epochs=long_term_epochs,
-            threads=threads,
-        )
-        model, steps = netadapt(det.model, ds, cfg, log=_log)
-        m0 = macs(det.cfg)
-        pruned = Detector(
-            model,
-            {
-                "pruned_from": str(weights or "shipped"),
-                "data": [str(p) for p in data],
-                "prune_config": cfg.model_dump(mode="json"),
-                "macs_ratio": macs(model.cfg) / m0,
-                "steps": [[s.layer, list(s.channels), s.macs, s.val_loss] for s in steps],
-            },
-        )
-        out.parent.mkdir(parents=True, exist_ok=True)
-        pruned.save(out)
+        settings = {
+            "target_ratio": target,
+            "short_term_batches": short_term_batches,
+            "long_term_epochs": long_term_epochs,
+            "threads": threads,
+        }
+        channels, ratio = prune_detector(out, data, weights, settings, _log)
     except MMPAError as e:
         fail(e)
-    _log(f"wrote {out}: channels {model.cfg.channels}, {macs(model.cfg) / m0:.2f} of the MACs")
+    _log(f"wrote {out}: channels {channels}, {ratio:.2f} of the MACs")
 
 
 @perception_app.command("evaluate")
@@ -208,19 +160,12 @@ def evaluate_cmd(
 
         from rich.table import Table
 
-        from mmpa.perception import require_torch
+        from mmpa.apps.perception import evaluate_detector
 
-        require_torch()
-        from mmpa.experiments.perception_data import DatasetConfig, load_dataset, render_dataset
-        from mmpa.perception.ssd import Detector
-        from mmpa.perception.train import evaluate
-
-        det = Detector.load(weights)
-        ds = load_dataset(data) if data else render_dataset(DatasetConfig(n_images=n, seed=seed))
-        res = evaluate(det, ds, preprocess_dark=preprocess_dark, threshold=threshold)
+        res, n_images = evaluate_detector(weights, data, n, seed, preprocess_dark, threshold)
     except MMPAError as e:
         fail(e)
-    t = Table(title=f"detector on {len(ds)} images (mAP@0.5 {res.mean_ap:.3f})")
+    t = Table(title=f"detector on {n_images} images (mAP@0.5 {res.mean_ap:.3f})")
     t.add_column("class")
     t.add_column("AP@0.5")
     conds = list(res.success)

@@ -1,5 +1,5 @@
 """``mmpa register``: register two recorded RGB-D frames (PNG pairs or a bag), print the pose
-and the verdict (runner: :mod:`mmpa.bags.register`)."""
+and the verdict (runner: :mod:`mmpa.apps.register`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from mmpa.cli.common import console, fail, in_range, out_dir
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 
 __all__ = ["register"]
 
@@ -56,8 +56,8 @@ def register_cmd(
     """Register frame 1 onto frame 2 (T_2_1: p2 = T p1) with FPFH + FGR and colored ICP
     (and projective ICP with --refine); print the pose, the metrics and the verdict. Either
     --color1/--depth1/--color2/--depth2/--intrinsics, or --bag with --from/--to."""
-    from mmpa.bags import register as rr
-    from mmpa.errors import InvalidInputError
+    from mmpa.apps import register as rr
+    from mmpa.core.errors import InvalidInputError
 
     pngs = {
         "--color1": color1,
@@ -74,7 +74,7 @@ def register_cmd(
                 raise InvalidInputError(f"--bag excludes the image options ({', '.join(given)})")
             if t_from is None or t_to is None:
                 raise InvalidInputError("--bag needs --from and --to (s after the first frame)")
-            from mmpa.backends.bag import BagTopics
+            from mmpa.apps.register import BagTopics
 
             topics = BagTopics(color=color_topic, depth=depth_topic, camera_info=info_topic)
             with console.status(f"reading camera frames of {bag}"):

@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from mmpa.cli.common import console, fail
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 
 __all__ = ["register"]
 

@@ -1,5 +1,5 @@
 """``mmpa sweep FILE.yaml --out DIR``: a parameter sweep over experiments (the runner logic
-lives in :mod:`mmpa.experiments.sweep`)."""
+lives in :mod:`mmpa.harness.sweep`)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from mmpa.cli.common import (
     out_dir,
     progress_bar,
 )
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 
 __all__ = ["register", "sweep_cmd"]
 
@@ -38,7 +38,7 @@ def sweep_cmd(
     ] = False,
 ) -> None:
     """Sweep config fields over experiments: sweep.csv, sweep.md and one plot per field."""
-    from mmpa.experiments.sweep import check_run_options, load_sweep, run_sweep
+    from mmpa.harness.sweep import check_run_options, load_sweep, run_sweep
 
     out = out or Path("runs") / f"sweep-{file.stem}"
     try:

@@ -10,7 +10,7 @@ import typer
 from rich.table import Table
 
 from mmpa.cli.common import DbOpt, console, fail
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 
 tasks_app = typer.Typer(
     help="Taught tasks: list, show, export, import, delete.", no_args_is_help=True
@@ -22,7 +22,7 @@ def _fmt(v: np.ndarray, scale: float = 1.0, digits: int = 4) -> str:
 
 
 def _pose(T: np.ndarray) -> str:
-    from mmpa.geometry import T_to_vec6
+    from mmpa.core.geometry import T_to_vec6
 
     v = T_to_vec6(T)
     return f"xyz {_fmt(v[:3])} m, rpy {_fmt(v[3:], 180.0 / np.pi, 3)} deg"

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array
 
 __all__ = ["arrival_times", "compensate"]
 

@@ -24,9 +24,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from ruckig import InputParameter, Result, Ruckig, Trajectory
 
-from mmpa.errors import InvalidInputError, UnreachableError
+from mmpa.core.errors import InvalidInputError, UnreachableError
+from mmpa.core.geometry import Array, inv, make_T, rot_x, rot_y, rot_z
 from mmpa.fiducial_search.compensation import arrival_times, compensate
-from mmpa.geometry import Array, inv, make_T, rot_x, rot_y, rot_z
 from mmpa.robot import kinematics as kin
 from mmpa.robot.description import RobotDescription
 

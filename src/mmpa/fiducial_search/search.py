@@ -25,7 +25,8 @@ from typing import Literal, Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.errors import InvalidInputError
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array
 from mmpa.fiducial_search.planning import (
     ArmLimits,
     PlanningConfig,
@@ -35,7 +36,6 @@ from mmpa.fiducial_search.planning import (
 )
 from mmpa.fiducial_search.spiral import SpiralConfig, spiral_points
 from mmpa.fiducial_search.stochastic import ConstantVelocityKF, StochasticConfig, grid_samples
-from mmpa.geometry import Array
 from mmpa.robot.description import RobotDescription
 
 __all__ = [

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array, T_to_vec6, as_transform, inv
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array, T_to_vec6, as_transform, inv
 
 __all__ = [
     "DEFAULT_ALPHA",

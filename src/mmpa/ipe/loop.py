@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from mmpa.errors import InvalidInputError, UnreachableError
-from mmpa.geometry import Array, as_transform, inv, make_T
+from mmpa.core.errors import InvalidInputError, UnreachableError
+from mmpa.core.geometry import Array, as_transform, inv, make_T
 from mmpa.ipe.core import (
     DEFAULT_ALPHA,
     alpha_vector,

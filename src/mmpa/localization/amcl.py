@@ -32,10 +32,10 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array
 from mmpa.localization.health import Health
-from mmpa.localization.maps import OccupancyGrid
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan
 
 _RAY_BLOCK = 32768  # rays marched together by AMCL.raycast (their arrays fit the L2 cache)

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array
 from mmpa.localization.amcl import AMCL
 
 __all__ = ["TurnMountFit", "calibrated_mount", "fit_turn_mount", "match_scan"]

@@ -113,8 +113,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array
 from mmpa.localization.amcl import (
     AMCL,
     AMCLConfig,
@@ -123,7 +123,6 @@ from mmpa.localization.amcl import (
     check_scan,
     finite_pose,
 )
-from mmpa.localization.maps import OccupancyGrid
 from mmpa.localization.reflectors import (
     DetectionConfig,
     IdentifyConfig,
@@ -138,6 +137,7 @@ from mmpa.localization.trilateration import (
     trilaterate,
     trilaterate_bias,
 )
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan
 
 __all__ = [

@@ -17,7 +17,11 @@ method's :class:`~mmpa.localization.amcl.PoseEstimate` carries
   made in the elapsed time (``|dxy| > max_speed dt + slack_xy``, ``|dtheta| > max_turn_rate
   dt + slack_theta``; without a usable ``dt``: ``|dxy| > max_step``);
 - :func:`scan_defects`: NaN or negative intensities (which silently hide the reflectors
-  from the detector), negative ranges, a majority of NaN ranges.
+  from the detector), negative ranges, a majority of NaN ranges;
+- :func:`odometry_correction` / :func:`correction_plausible`: how far one update moved the
+  estimate against the odometry (the estimate vs the last updated estimate carried by the
+  odometry since), and whether that correction is one odometry error and a normal filter
+  correction explain (a scan matcher that jumps 0.5 m while the wheels say 1 cm is not).
 """
 
 from __future__ import annotations
@@ -27,14 +31,16 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.geometry import Array, se2_compose
+from mmpa.core.geometry import Array, se2_compose, se2_inv
 
 __all__ = [
     "Health",
     "HealthConfig",
+    "correction_plausible",
     "crossed_share",
     "explained_near",
     "explained_share",
+    "odometry_correction",
     "odometry_plausible",
     "position_spread",
     "scan_defects",
@@ -102,6 +108,18 @@ class HealthConfig(BaseModel):
     #: consistent maps < 0.1 (the fix is fused); walls shifted 1-3 m or another building:
     #: 1-1.5 (EnhancedAMCL's laser term pulls the estimate onto the wrong walls)
     fix_disagree: float = Field(0.5, gt=0)
+    #: one update may move the estimate against the odometry by at most ``jump_xy +
+    #: jump_per_m * travelled`` m and ``jump_theta + jump_per_rad * turned`` rad (travelled,
+    #: turned: the odometry's path length and summed turn since the last updated estimate).
+    #: Measured at err < 0.2 m (benchmarks/audit_lost.py): the largest share of that limit
+    #: a correction used was 0.57 on the twin's drives, 0.67 csail, 0.62 intel, 0.79 freiburg
+    #: (0.25 m after 0.12 m travelled, from 0.40 m off); faults that explain the scan well
+    #: (reversed angles: Hector 0.44-0.58 m / 20-45 deg, a mirrored reflector identification
+    #: 1.1-1.6 m / 60-160 deg) 1.45 and up
+    jump_xy: float = Field(0.3, gt=0)
+    jump_per_m: float = Field(0.2, ge=0)
+    jump_theta: float = Field(np.deg2rad(15.0), gt=0)
+    jump_per_rad: float = Field(0.2, ge=0)
 
 
 @dataclass(frozen=True)
@@ -116,7 +134,11 @@ class Health:
     the map best when that beats the scan as given ("mirrored", "ranges x 0.5", ... or ''),
     ``alternative_gain`` its window median gain in explained share; ``fix_offset`` m the
     distance from this update's reflector fix to the estimate (NaN: no fix), ``fix_window``
-    its median over the last fixes; ``beams`` the valid
+    its median over the last fixes; ``correction_xy`` m and ``correction_theta`` rad (absolute)
+    how far this update moved the estimate against the odometry
+    (:func:`odometry_correction`; NaN: no filter update, or the first one),
+    ``correction_ratio`` the share of the allowed correction it used (above 1: "jumped",
+    :func:`correction_plausible`); ``beams`` the valid
     beams judged; ``spread_xy`` m the position spread (NaN where the method has no
     particles); ``odom_ok`` False when this update's odometry increment was implausible
     (and refused); ``scan_ok`` False when the scan's fields are inconsistent (NaN/negative
@@ -130,6 +152,9 @@ class Health:
     alternative_gain: float = 0.0
     fix_offset: float = float("nan")
     fix_window: float = float("nan")
+    correction_xy: float = float("nan")
+    correction_theta: float = float("nan")
+    correction_ratio: float = float("nan")
     beams: int = 0
     spread_xy: float = float("nan")
     odom_ok: bool = True
@@ -158,7 +183,7 @@ def explained_share(
     explained at base pose ``pose`` ``[x, y, theta]``, and their count.
 
     ``dist`` (H, W) m distance from each cell center to the nearest occupied cell center
-    (:meth:`~mmpa.localization.maps.OccupancyGrid.distance_field`), row 0 at ``origin`` ``(x,
+    (:meth:`~mmpa.maps.occupancy.OccupancyGrid.distance_field`), row 0 at ``origin`` ``(x,
     y)``, ``resolution`` m/cell. Beam ``b`` ends at ``p_b = o + r_b [cos(theta + theta_l +
     a_b), sin(...)]`` (``o`` the laser origin, ``theta_l`` the mount yaw) and is explained
     if it falls in a cell with ``dist <= explain_dist + r_b sin(explain_angle)``; outside the
@@ -286,6 +311,39 @@ def odometry_plausible(delta: Array, dt: float | None, cfg: HealthConfig) -> tup
     if step > cfg.max_step:
         return False, f"odometry jumped {step:.2f} m between updates (max_step {cfg.max_step} m)"
     return True, ""
+
+
+def odometry_correction(
+    anchor_pose: Array, anchor_odom: Array, pose: Array, odom_pose: Array
+) -> Array:
+    """The correction ``[dx, dy, dtheta]`` (frame of the prediction; ``dtheta`` wrapped)
+    that takes the prediction ``anchor_pose * anchor_odom^-1 * odom_pose`` (the estimate
+    ``anchor_pose`` made at odometry pose ``anchor_odom``, carried by the odometry since) to
+    the estimate ``pose`` at odometry pose ``odom_pose``. Zero where the estimate moved as
+    the odometry did."""
+    pred = se2_compose(anchor_pose, se2_compose(se2_inv(anchor_odom), odom_pose))
+    return se2_compose(se2_inv(pred), pose)
+
+
+def correction_plausible(
+    corr: Array, travelled: float, turned: float, cfg: HealthConfig
+) -> tuple[float, str]:
+    """How much of the largest correction a filter makes after the odometry travelled
+    ``travelled`` m and turned ``turned`` rad the correction ``corr``
+    (:func:`odometry_correction`) uses: the larger of ``|corr_xy| / (jump_xy + jump_per_m
+    travelled)`` and ``|corr_theta| / (jump_theta + jump_per_rad turned)``; above 1, a
+    sentence saying it jumped ('' if not)."""
+    dxy, dth = float(np.hypot(corr[0], corr[1])), abs(float(corr[2]))
+    lim = cfg.jump_xy + cfg.jump_per_m * travelled
+    lim_a = cfg.jump_theta + cfg.jump_per_rad * turned
+    ratio = max(dxy / lim, dth / lim_a)
+    if ratio <= 1:
+        return ratio, ""
+    return ratio, (
+        f"the estimate jumped {dxy:.2f} m and {np.rad2deg(dth):.0f} deg against the odometry "
+        f"in one update (odometry: {travelled:.2f} m, {np.rad2deg(turned):.0f} deg; at most "
+        f"{lim:.2f} m and {np.rad2deg(lim_a):.0f} deg)"
+    )
 
 
 def scan_defects(ranges: Array, intensities: Array, max_nan_share: float = 0.5) -> str:

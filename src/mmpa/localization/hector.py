@@ -27,8 +27,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array
 from mmpa.localization.amcl import (
     PoseEstimate,
     _wrap,
@@ -37,7 +37,7 @@ from mmpa.localization.amcl import (
     finite_cov,
     finite_pose,
 )
-from mmpa.localization.maps import OccupancyGrid
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan
 
 __all__ = ["HectorConfig", "HectorMatcher"]

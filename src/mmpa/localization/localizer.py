@@ -18,8 +18,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from mmpa.errors import InvalidInputError, UnknownNameError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError, UnknownNameError
+from mmpa.core.geometry import Array
 from mmpa.localization.amcl import (
     AMCL,
     AMCLConfig,
@@ -38,8 +38,8 @@ from mmpa.localization.enhanced import (
 )
 from mmpa.localization.health import HealthConfig
 from mmpa.localization.hector import HectorMatcher
-from mmpa.localization.maps import OccupancyGrid
 from mmpa.localization.monitor import MonitoredLocalizer
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan
 
 __all__ = ["METHODS", "TAMCL", "Localizer", "TrilaterationLocalizer", "make_localizer"]

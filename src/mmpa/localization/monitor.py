@@ -18,10 +18,20 @@ Per :meth:`MonitoredLocalizer.update`:
    the median rises above ``recover_above`` (hysteresis: one scan blocked by people does not
    raise the alarm, a wrong unit, mirrored angles or another building's map do within
    ``window / 2 + 1`` updates); a particle spread above ``spread_max`` says "lost" too;
-4. reflector methods (``inner.last_fix``): a window median distance from the reflector fix
-   to the estimate above ``fix_disagree`` says "inconsistent map" (the scan's walls and the
-   map's reflector survey disagree: EnhancedAMCL's laser term can pull the estimate onto
-   the walls of a wrong map where they explain the scan well, 1-1.5 m from the fix).
+4. on a map with >= 3 reflectors: a window median distance from the reflector fix to the
+   estimate above ``fix_disagree`` says "inconsistent map" (the scan's walls and the map's
+   reflector survey disagree: EnhancedAMCL's laser term can pull the estimate onto the
+   walls of a wrong map where they explain the scan well, 1-1.5 m from the fix; Hector
+   follows walls shifted 1 m). The fix is the wrapped localizer's (``inner.last_fix``)
+   where it has one, else the monitor's own
+   :class:`~mmpa.localization.enhanced.ReflectorObserver` (amcl, tamcl, hector);
+5. an update that moved the estimate against the odometry by more than a filter's
+   correction (:func:`~mmpa.localization.health.correction_plausible`; the estimate vs the
+   last updated estimate carried by the odometry since) says "inconsistent" on that update.
+   The flag is an event, cleared at the next update whose correction is plausible: a jump
+   may as well be a filter correcting itself (on the real logs AMCL jumped 0.4-0.7 m back
+   from 0.5-0.7 m off and was within 0.2 m one update later), and where the jump went wrong
+   the estimate's other figures judge it from then on.
 
 Any ``ok=False``/``reason`` of the wrapped localizer (Hector's rejected matches) is kept.
 Attributes the wrapper does not define are the wrapped localizer's (``loc.particles``,
@@ -36,18 +46,21 @@ from typing import Any
 
 import numpy as np
 
-from mmpa.geometry import Array, se2_compose, se2_inv
+from mmpa.core.geometry import Array, se2_compose, se2_inv
 from mmpa.localization.amcl import PoseEstimate, check_scan, finite_pose
+from mmpa.localization.enhanced import ObserverConfig, ReflectorObserver
 from mmpa.localization.health import (
     Health,
     HealthConfig,
+    correction_plausible,
     crossed_share,
     explained_near,
+    odometry_correction,
     odometry_plausible,
     position_spread,
     scan_defects,
 )
-from mmpa.localization.maps import OccupancyGrid
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan
 
 __all__ = ["MonitoredLocalizer"]
@@ -72,6 +85,13 @@ class MonitoredLocalizer:
         self._occ = grid.occupied
         self._res = float(grid.resolution)
         self._origin = (float(grid.origin[0]), float(grid.origin[1]))
+        self._observer = None  # the reflector fix where the wrapped localizer has none
+        if not hasattr(inner, "last_fix") and len(grid.reflectors) >= 3:
+            cfg_o = ObserverConfig()
+            if grid.reflector_radius > 0:
+                det = cfg_o.detection.model_copy(update={"radius": grid.reflector_radius})
+                cfg_o = cfg_o.model_copy(update={"detection": det})
+            self._observer = ReflectorObserver(grid.reflectors, self.laser_pose, cfg_o)
         self._reset()
 
     def _reset(self) -> None:
@@ -85,6 +105,9 @@ class MonitoredLocalizer:
         self._stamp_prev: float | None = None
         self._odom_flag = 0
         self._odom_reason = ""
+        self._anchor: tuple[Array, Array] | None = None  # last updated (estimate, odometry)
+        self._fed_prev: Array | None = None  # the odometry the wrapped localizer last saw
+        self._travelled = np.zeros(2)  # odometry path (m) and turn (rad) since the anchor
         self.refused_odometry = 0  # implausible odometry increments refused so far
         self.last_health = Health()
 
@@ -141,12 +164,40 @@ class MonitoredLocalizer:
         est = self.inner.update(odom, scan, force)
         pose = np.asarray(self.inner.pose_at(odom), float)
         health, reasons = self._judge(est, pose, scan)
+        corr, ratio, why = self._correction(est.updated, odom, pose)
+        health = dataclasses.replace(
+            health,
+            correction_xy=float(np.hypot(*corr[:2])),
+            correction_theta=float(abs(corr[2])),
+            correction_ratio=ratio,
+        )
+        if why:
+            reasons.append(f"inconsistent: {why}")
         if not est.ok and est.reason:
             reasons.append(est.reason)
         self.last_health = health
         return dataclasses.replace(
             est, ok=est.ok and not reasons, reason="; ".join(reasons), health=health
         )
+
+    def _correction(self, updated: bool, odom: Array, pose: Array) -> tuple[Array, float, str]:
+        """This update's correction against the odometry and the share of the allowed one
+        it used (NaN where the wrapped localizer ran no update, or at its first), and the
+        reason to say ``ok=False`` ('' if none); an updated estimate becomes the anchor the
+        next correction is measured from."""
+        if self._fed_prev is not None:
+            step = se2_compose(se2_inv(self._fed_prev), odom)
+            self._travelled += (np.hypot(step[0], step[1]), abs(step[2]))
+        self._fed_prev = odom.copy()
+        corr, ratio, why = np.full(3, np.nan), float("nan"), ""
+        if not updated or not np.all(np.isfinite(pose)):
+            return corr, ratio, why
+        if self._anchor is not None:
+            corr = odometry_correction(*self._anchor, pose, odom)
+            ratio, why = correction_plausible(corr, *self._travelled, self.health_cfg)
+        self._anchor = (pose.copy(), odom.copy())
+        self._travelled[:] = 0.0
+        return corr, ratio, why
 
     def _share(self, pose: Array, ranges: Array, angles: Array) -> tuple[float, Array]:
         c = self.health_cfg
@@ -230,14 +281,18 @@ class MonitoredLocalizer:
         gain = float(np.median([g if n == top else 0.0 for n, g in self._alts]))
         return window, cross, top, gain
 
-    def _fix_check(self, est: PoseEstimate) -> tuple[float, float, str]:
-        """Reflector methods: the distance from this update's reflector fix to the estimate,
-        its median over the last ``window`` fixes (NaN before 3), and the reason to say
-        ``ok=False`` when that median exceeds ``fix_disagree`` ('' if not)."""
-        fix = getattr(self.inner, "last_fix", None)
+    def _fix_check(self, pose: Array, scan: LaserScan) -> tuple[float, float, str]:
+        """The distance from this update's reflector fix (the wrapped localizer's, or the
+        monitor's observer's) to the estimate ``pose``, its median over the last ``window``
+        fixes (NaN before 3), and the reason to say ``ok=False`` when that median exceeds
+        ``fix_disagree`` ('' if not)."""
+        if self._observer is not None:
+            fix = self._observer.observe(scan)
+        else:
+            fix = getattr(self.inner, "last_fix", None)
         off = float("nan")
-        if fix is not None and np.all(np.isfinite(est.pose)):
-            off = float(np.hypot(*(np.asarray(fix.pose)[:2] - est.pose[:2])))
+        if fix is not None and np.all(np.isfinite(pose)):
+            off = float(np.hypot(*(np.asarray(fix.pose)[:2] - pose[:2])))
             self._fix_offsets.append(off)
         if len(self._fix_offsets) < min(3, self.health_cfg.window):
             return off, float("nan"), ""
@@ -281,7 +336,7 @@ class MonitoredLocalizer:
                 f"its walls (medians of the last {len(self._shares)} updates; lost below "
                 f"{c.lost_below:.0%} or above {c.crossed_above:.0%})"
             )
-        fix_off, fix_win, why = self._fix_check(est)
+        fix_off, fix_win, why = self._fix_check(pose, scan)
         if why:
             reasons.append(why)
         spread = position_spread(est.cov) if est.n_particles > 0 else float("nan")

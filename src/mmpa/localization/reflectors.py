@@ -31,8 +31,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array
 from mmpa.robot.interfaces import LaserScan
 
 __all__ = [

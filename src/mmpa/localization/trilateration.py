@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array
 
 __all__ = [
     "BiasedTrilateration",

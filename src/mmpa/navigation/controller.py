@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.geometry import Array, wrap_angle
+from mmpa.core.geometry import Array, wrap_angle
 
 __all__ = ["GoToPoseConfig", "go_to_pose_command"]
 

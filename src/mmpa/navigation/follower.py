@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array, wrap_angle
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array, wrap_angle
 from mmpa.navigation.controller import GoToPoseConfig
 
 __all__ = ["FollowerConfig", "PathFollower", "goal_frame_error", "within_tolerance"]

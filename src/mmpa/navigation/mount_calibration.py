@@ -15,7 +15,7 @@ from typing import Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.geometry import Array
+from mmpa.core.geometry import Array
 from mmpa.localization.amcl import AMCL, compose_odom
 from mmpa.localization.calibration import (
     TurnMountFit,
@@ -24,7 +24,7 @@ from mmpa.localization.calibration import (
     match_scan,
 )
 from mmpa.localization.enhanced import EnhancedAMCL, EnhancedConfig
-from mmpa.localization.maps import OccupancyGrid
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.robot.interfaces import Base, Lidar
 
 __all__ = ["MountCalibration", "MountCalibrationConfig", "calibrate_lidar_mount"]

@@ -28,9 +28,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from mmpa.errors import InvalidInputError, UnreachableError
-from mmpa.geometry import Array
-from mmpa.localization.maps import OccupancyGrid
+from mmpa.core.errors import InvalidInputError, UnreachableError
+from mmpa.core.geometry import Array
+from mmpa.maps.occupancy import OccupancyGrid
 
 __all__ = ["CostMap", "PlannerConfig", "plan_path"]
 

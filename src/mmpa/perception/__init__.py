@@ -37,7 +37,7 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from mmpa.errors import MMPAError
+from mmpa.core.errors import MMPAError
 
 __all__ = ["CLASSES", "LIGHTING_CONDITIONS", "require_torch"]
 

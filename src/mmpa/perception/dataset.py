@@ -1,6 +1,6 @@
 """Detector data sets: labelled images (:class:`Dataset`), saved and loaded as ``.npz``.
 
-The twin renders them (:mod:`mmpa.experiments.perception_data`: random and working views,
+The twin renders them (:mod:`mmpa.harness.perception_data`: random and working views,
 boxes from segmentation rendering); this module holds only the data, so the detector and its
 training never import the simulator.
 """
@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mmpa.errors import ConfigError
-from mmpa.geometry import Array
+from mmpa.core.errors import ConfigError
+from mmpa.core.geometry import Array
 
 __all__ = ["Dataset", "Sample", "load_dataset", "save_dataset"]
 

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mmpa.errors import InvalidInputError, MMPAError
-from mmpa.geometry import Array, apply, make_T
+from mmpa.core.errors import InvalidInputError, MMPAError
+from mmpa.core.geometry import Array, apply, make_T
 
 __all__ = [
     "DepthMissingError",

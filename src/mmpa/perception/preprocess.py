@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from mmpa.errors import InvalidInputError
+from mmpa.core.errors import InvalidInputError
 
 __all__ = ["dark_preprocess", "edge_enhance", "equalize_histogram", "is_dark", "mean_filter"]
 

@@ -25,7 +25,7 @@ import torch.nn.functional as F  # noqa: N812
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
-from mmpa.errors import ConfigError, InvalidInputError
+from mmpa.core.errors import ConfigError, InvalidInputError
 from mmpa.perception import CLASSES
 
 __all__ = [
@@ -321,7 +321,7 @@ class Detector:
     @classmethod
     def load(cls, path: str | Path | None = None) -> Detector:
         """Load weights (default: the shipped model). Missing or corrupt files raise
-        :class:`mmpa.errors.ConfigError` naming the file."""
+        :class:`mmpa.core.errors.ConfigError` naming the file."""
         p = Path(path) if path is not None else default_weights_path()
         if not p.is_file():
             raise ConfigError(

@@ -16,8 +16,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.interpolate import CubicSpline
 
-from mmpa.errors import InvalidInputError, UnreachableError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError, UnreachableError
+from mmpa.core.geometry import Array
 from mmpa.robot.description import ArmDescription
 from mmpa.robot.kinematics import fk, ik_nearest
 from mmpa.robot.limits import JointLimits, check_positions, path_accelerations, path_velocities

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg.lapack import dgesv as _gesv
 
-from mmpa.geometry import Array
+from mmpa.core.geometry import Array
 from mmpa.registration._blas import single_threaded_blas
 
 __all__ = ["fgr_solve"]

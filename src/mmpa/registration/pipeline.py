@@ -56,8 +56,8 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from mmpa.errors import ConfigError, InvalidInputError
-from mmpa.geometry import Array
+from mmpa.core.errors import ConfigError, InvalidInputError
+from mmpa.core.geometry import Array
 from mmpa.registration._blas import open3d_threads, single_threaded_blas
 from mmpa.registration.config import IcpScale, RegistrationConfig
 from mmpa.registration.fgr import fgr_solve

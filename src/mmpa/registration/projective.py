@@ -99,8 +99,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array, exp_se3
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array, exp_se3
 from mmpa.registration._blas import single_threaded_blas
 from mmpa.registration.pipeline import information_matrix
 from mmpa.robot.description import CameraIntrinsics

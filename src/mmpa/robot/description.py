@@ -1,7 +1,7 @@
 """The robot, described in one place: UR5e-class arm on a differential-drive base.
 
 Everything here is NOMINAL (what the software believes). The simulator builds its TRUE robot
-from a perturbed copy (see ``mmpa.sim.error_model``). Poses of mounted parts are stored as
+from a perturbed copy (see ``mmpa.backends.twin.error_model``). Poses of mounted parts are stored as
 6D vectors ``[tx, ty, tz, roll, pitch, yaw]`` (m, rad) and exposed as 4x4 ``T_a_b``
 properties. Units: m, rad, s.
 """
@@ -14,8 +14,8 @@ from typing import Annotated
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array, vec6_to_T
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array, vec6_to_T
 
 Vec6 = tuple[float, float, float, float, float, float]
 

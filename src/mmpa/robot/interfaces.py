@@ -13,8 +13,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array, apply
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array, apply
 from mmpa.robot.description import CameraIntrinsics
 
 __all__ = [
@@ -242,8 +242,8 @@ class Arm(Protocol):
     Limits contract (every backend): no motion may exceed the arm's joint position, velocity
     or acceleration limits (:class:`mmpa.robot.limits.JointLimits`). A target or path sample
     outside the position limits, a NaN, or a path whose velocity or acceleration breaks the
-    limits is refused with :class:`~mmpa.errors.JointLimitError` /
-    :class:`~mmpa.errors.InvalidInputError` before anything moves (callers slow a path down
+    limits is refused with :class:`~mmpa.core.errors.JointLimitError` /
+    :class:`~mmpa.core.errors.InvalidInputError` before anything moves (callers slow a path down
     with :func:`mmpa.planning.retime`); a path whose start is away from the arm gets a
     limit-respecting approach move, never a jump; streaming set-points (``command``, where a
     backend has it) are velocity- and acceleration-limited by the backend: within ``qdd_max``

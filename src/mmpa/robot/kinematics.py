@@ -25,8 +25,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
-from mmpa.errors import InvalidInputError, UnreachableError
-from mmpa.geometry import Array, as_transform, inv
+from mmpa.core.errors import InvalidInputError, UnreachableError
+from mmpa.core.geometry import Array, as_transform, inv
 from mmpa.robot.description import DHParameters
 
 __all__ = [

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mmpa.errors import InvalidInputError, JointLimitError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError, JointLimitError
+from mmpa.core.geometry import Array
 from mmpa.robot.description import ArmDescription
 
 __all__ = [

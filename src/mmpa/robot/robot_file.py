@@ -14,7 +14,7 @@ plus two shortcuts under ``arm``:
   ``alpha += delta_alpha``). A relative path is read beside the robot file.
 
 ``reflector_map: FILE`` (optional, default none) names the site's surveyed reflector map
-(:mod:`mmpa.localization.reflector_map`; written by ``mmpa calibrate reflectors``); a
+(:mod:`mmpa.maps.reflector_map`; written by ``mmpa calibrate reflectors``); a
 relative path is read beside the robot file (:func:`robot_reflector_map`). It is not part
 of the :class:`RobotDescription`: :func:`load_robot` accepts and skips it.
 
@@ -41,9 +41,9 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from mmpa.errors import ConfigError
+from mmpa.core.errors import ConfigError
+from mmpa.core.yamlio import load_yaml
 from mmpa.robot.description import RobotDescription
-from mmpa.yamlio import load_yaml
 
 __all__ = [
     "UR_MODELS",

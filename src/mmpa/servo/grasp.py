@@ -31,7 +31,7 @@ interface holds at its velocity, jumps by the velocity change times the period a
 tick: the arm's limiter follows it late, 0.036 rad at 20 Hz and 0.8 ``qdd_max``). Under
 ``qdd_max`` (4 rad/s^2 on joints 1-3) the descent takes 0.9-1.5 s instead of 0.2-0.4 s, and
 a turn of a moving object needs 0.2 s of the arm's acceleration to follow: a moving object
-turns during the descent. Measured with :func:`mmpa.experiments.grasp.grasp_trial` (seed
+turns during the descent. Measured with :func:`mmpa.experiments.paper001.grasp.grasp_trial` (seed
 0; grasped / trials, close error mean / max mm; static: the oracle detector, tennis ball,
 yida bottle, cube, blue stick x 3; tracking: the tennis ball, the shipped detector, 6
 trials):
@@ -137,8 +137,8 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.errors import InvalidInputError, MMPAError, UnknownNameError, UnreachableError
-from mmpa.geometry import Array, apply, inv, make_T
+from mmpa.core.errors import InvalidInputError, MMPAError, UnknownNameError, UnreachableError
+from mmpa.core.geometry import Array, apply, inv, make_T
 from mmpa.perception.locate import DepthMissingError, locate, look_at
 from mmpa.perception.preprocess import dark_preprocess, is_dark
 from mmpa.robot.description import RobotDescription
@@ -225,7 +225,7 @@ class GraspConfig(BaseModel):
     # issue 22: when the streamed set-points keep qdd_max too ("limited": at most
     # ``joint_accel_fraction`` of it, streamed at ``servo_rate_hz``, the descent along a
     # ``descend_accel`` ramp, and the arm's streaming interface told to enforce qdd_max: an
-    # arm with a ``stream_acceleration_limited`` switch, ``mmpa.sim.world.SimArm``); else
+    # arm with a ``stream_acceleration_limited`` switch, ``mmpa.backends.twin.world.SimArm``); else
     # qd_max and the arm's hard stream limit ``qdd_stream_max`` only (40 rad/s^2, ur_rtde's
     # limit: a UR's own acceleration limits are planning values), streamed at
     # ``servo_rate_hz`` too, a constant-speed descent (the paper's way). "always": limited;

@@ -29,8 +29,8 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array, apply, inv
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array, apply, inv
 
 __all__ = [
     "IBVSConfig",

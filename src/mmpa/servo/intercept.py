@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 from ruckig import InputParameter, Result, Ruckig, Trajectory
 
-from mmpa.errors import InvalidInputError, MMPAError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError, MMPAError
+from mmpa.core.geometry import Array
 
 __all__ = ["InterceptError", "InterceptLimits", "StreamState", "intercept_step"]
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmpa.geometry import Array
+from mmpa.core.geometry import Array
 from mmpa.robot.description import DHParameters
 from mmpa.robot.kinematics import jacobian, manipulability
 from mmpa.servo.ibvs import pinv

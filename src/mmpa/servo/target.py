@@ -42,8 +42,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array
 from mmpa.perception.locate import box_iou
 
 __all__ = ["TopSurface", "box_points", "desk_height", "grasp_height", "surfaces", "top_surface"]

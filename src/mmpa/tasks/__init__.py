@@ -8,7 +8,7 @@ SQLite file with checksums and transactions; ``write_bundle`` / ``read_bundle`` 
 
 from __future__ import annotations
 
-from mmpa.errors import (
+from mmpa.core.errors import (
     CorruptTaskError,
     TaskExistsError,
     TaskNotFoundError,

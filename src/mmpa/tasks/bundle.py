@@ -3,14 +3,14 @@
 ``task.yaml`` holds the metadata and poses (floats written exactly), the format version, the
 size and SHA-256 of both data files, the SHA-256 of the path arrays and of the whole metadata
 record (``header_sha256``, the same value the database stores). Reading checks all of them,
-so a truncated or edited bundle is refused with :class:`~mmpa.errors.CorruptTaskError`
+so a truncated or edited bundle is refused with :class:`~mmpa.core.errors.CorruptTaskError`
 naming the file and what mismatched; a bundle from a newer mmpa raises
-:class:`~mmpa.errors.UnsupportedVersionError`.
+:class:`~mmpa.core.errors.UnsupportedVersionError`.
 
 Reading trusts nothing in the directory: every file must be a regular file inside it (a
 symbolic link, or anything else, is refused before it is opened), its size is checked with
 ``fstat`` before a byte is read (and never more than :data:`MAX_FILE_BYTES`), and
-``task.yaml`` is parsed by :func:`mmpa.yamlio.load_yaml_text` (safe types, no aliases).
+``task.yaml`` is parsed by :func:`mmpa.core.yamlio.load_yaml_text` (safe types, no aliases).
 Writing builds the whole bundle in a temporary directory next to the target and renames it
 into place, so an export that fails at any point leaves the old bundle as it was.
 """
@@ -27,13 +27,14 @@ from typing import Any
 
 import yaml
 
-from mmpa.errors import (
+from mmpa.core.errors import (
     ConfigError,
     CorruptTaskError,
     InvalidInputError,
     TaskExistsError,
     UnsupportedVersionError,
 )
+from mmpa.core.yamlio import MAX_YAML_BYTES, load_yaml_text
 from mmpa.tasks.formats import (
     cloud_to_ply,
     csv_to_path,
@@ -47,7 +48,6 @@ from mmpa.tasks.formats import (
     sha256,
 )
 from mmpa.tasks.model import FORMAT_VERSION, Task
-from mmpa.yamlio import MAX_YAML_BYTES, load_yaml_text
 
 __all__ = ["BUNDLE_FILES", "MAX_FILE_BYTES", "read_bundle", "write_bundle"]
 

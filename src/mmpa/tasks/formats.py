@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mmpa.errors import CorruptTaskError, InvalidInputError
+from mmpa.core.errors import CorruptTaskError, InvalidInputError
 from mmpa.robot.interfaces import PointCloud
 from mmpa.tasks.model import Task, ToolPath
 

@@ -3,7 +3,7 @@
 A task holds the park pose ``L_i(vehicle)`` in ``map``, the sampling joint configuration, the
 nominal camera pose ``T_B_C`` at sampling, the colored cloud ``X_i(O)`` in the camera frame
 and the end-effector path ``Path_i(O)`` recorded at ``f_i(O)`` Hz in the arm base frame.
-Every field is validated at construction (:class:`~mmpa.errors.InvalidInputError` naming
+Every field is validated at construction (:class:`~mmpa.core.errors.InvalidInputError` naming
 the field); arrays are copied to float64 and made read-only, so a task cannot change after
 its checksums were computed.
 """
@@ -17,8 +17,8 @@ from datetime import UTC, datetime
 
 import numpy as np
 
-from mmpa.errors import InvalidInputError
-from mmpa.geometry import Array, as_transform
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array, as_transform
 from mmpa.robot.interfaces import PointCloud
 
 __all__ = ["FORMAT_VERSION", "NAME_PATTERN", "Task", "TaskInfo", "ToolPath"]

@@ -12,10 +12,10 @@ Layout (schema version 1)::
 
 ``header_sha256`` covers every ``tasks`` column that :meth:`TaskStore.load` reads (and the
 blob checksums), so an edited row, blob or a missing blob row is refused with
-:class:`~mmpa.errors.CorruptTaskError`. Every write is one ``BEGIN IMMEDIATE`` transaction:
+:class:`~mmpa.core.errors.CorruptTaskError`. Every write is one ``BEGIN IMMEDIATE`` transaction:
 a failure or a crash at any point leaves the store as it was. Migrations live in
 :data:`MIGRATIONS` (version -> SQL statements) and run in order, each in a transaction; a
-store written by a newer mmpa raises :class:`~mmpa.errors.UnsupportedVersionError`.
+store written by a newer mmpa raises :class:`~mmpa.core.errors.UnsupportedVersionError`.
 
 No SQLite exception leaves this module: a damaged page, a dropped table or column (checked
 on open) or a value of the wrong type in a column raise CorruptTaskError naming the file
@@ -36,7 +36,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from mmpa.errors import (
+from mmpa.core.errors import (
     CorruptTaskError,
     InvalidInputError,
     MMPAError,
@@ -215,9 +215,9 @@ class TaskStore:
 
     ``timeout`` (s; None: ``$MMPA_TASKS_BUSY_TIMEOUT``, else 30) is how long a call waits
     for another process's lock before it raises :class:`StoreLockedError`. Every SQLite
-    error is reported as an :class:`~mmpa.errors.MMPAError` naming the file: a damaged
+    error is reported as an :class:`~mmpa.core.errors.MMPAError` naming the file: a damaged
     file, a dropped table or column, or a column of the wrong type raise
-    :class:`~mmpa.errors.CorruptTaskError`.
+    :class:`~mmpa.core.errors.CorruptTaskError`.
     """
 
     def __init__(self, path: str | Path | None = None, *, timeout: float | None = None) -> None:

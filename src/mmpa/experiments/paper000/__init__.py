@@ -1,0 +1,1 @@
+"""Paper 000 (MMPA / IPE): parking, IPE, path accuracy, ablations, scenes."""

@@ -1,0 +1,283 @@
+"""The hand-eye calibration procedure over the robot interfaces: any :class:`~mmpa.robot.
+interfaces.Arm` and :class:`~mmpa.robot.interfaces.Camera` (the twin's, a UR over RTDE with a
+RealSense, a fake of your own), nothing of a simulator and no truth.
+
+Steps (:func:`calibrate_hand_eye_on_robot`; only the robot's NOMINAL model is known):
+
+1. a first view of the board planned from a rough guess of where it stands in the arm base
+   frame (``T_armbase_board_guess``: a tape measure will do, views keep the whole board in
+   the image), near ``q_ref``: move there, detect the board, and estimate its pose
+   ``Y0 = fk(q) X_nominal C``;
+2. plan ``stations`` views around ``Y0`` (:func:`mmpa.calibration.hand_eye.plan_stations`:
+   four distances, tilts, rolls);
+3. at each: ``arm.move_joints``, wait ``settle_s``, read the encoders ``q_i``, capture, detect
+   the board and solve PnP (``C_i``); ``G_i = fk(nominal dh, q_i)``; a view without the
+   board is skipped (and reported);
+4. OpenCV's five ``calibrateHandEye`` methods, the one with the smallest board-corner spread
+   picked (:func:`mmpa.calibration.hand_eye.calibrate_hand_eye`);
+5. from it, the joint MAP fit of the DH corrections, the hand-eye, the board pose and a small
+   arm-base displacement per view over the board corners
+   (:func:`mmpa.calibration.kinematic.calibrate_kinematics_hand_eye`), with the corner noise
+   the views' pooled PnP reprojection RMS.
+
+``method`` picks the result (``joint``: the hand-eye with the calibrated DH it belongs to;
+``opencv``: step 4's with the nominal DH). The last DH link's error cannot be told from the
+hand-eye by any flange-mounted sensor (:mod:`mmpa.calibration.kinematic`), so either is the
+hand-eye on the model's flange. Units: m, rad, px.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from mmpa.calibration.charuco import (
+    BoardNotFoundError,
+    CharucoBoardSpec,
+    CharucoPose,
+    board_pose,
+)
+from mmpa.calibration.hand_eye import (
+    HandEyeResult,
+    board_consistency,
+    calibrate_hand_eye,
+    plan_stations,
+)
+from mmpa.calibration.kinematic import (
+    BoardObservations,
+    JointCalibrationConfig,
+    JointCalibrationResult,
+    calibrate_kinematics_hand_eye,
+)
+from mmpa.core.errors import InvalidInputError, MMPAError
+from mmpa.core.geometry import Array
+from mmpa.robot.description import DHParameters, RobotDescription
+from mmpa.robot.interfaces import Arm, Camera
+from mmpa.robot.kinematics import fk
+
+__all__ = [
+    "HandEyeProcedureConfig",
+    "HandEyeProcedureResult",
+    "calibrate_hand_eye_on_robot",
+]
+
+
+class HandEyeProcedureConfig(BaseModel):
+    """The procedure's settings (module docstring): ``stations`` views of ``board``, each
+    needing ``min_corners`` detected corners, ``settle_s`` of waiting after each move; the
+    ``method`` written out; the joint fit's priors (``joint``; the corner noise
+    ``pixel_sigma``, px, is the views' pooled PnP reprojection RMS unless given); the view
+    grid: camera ``distances`` (m) from the board centre, cone ``tilts_deg`` from its normal,
+    ``rolls_deg`` about the optical axis."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    stations: int = Field(40, ge=3, le=100)
+    board: CharucoBoardSpec = CharucoBoardSpec()
+    min_corners: int = Field(12, ge=4)
+    settle_s: float = Field(0.5, ge=0)
+    # joint by default: against the identifiable hand-eye E6 X (module docstring of
+    # mmpa.calibration.kinematic) 0.06-0.35 mm on realistic seeds 0-9, OpenCV 0.05-1.51 mm
+    method: Literal["joint", "opencv"] = "joint"
+    # per-station arm-base displacement priors: the platform's mount compliance tilts the
+    # arm base by up to 0.05 deg folded -> full reach (DESIGN.md's figure) and the chassis
+    # rocks on its wheels, about the floor contact 0.4 m below the arm base: an SD of 0.03
+    # deg, and 0.03 deg x 0.4 m = 0.2 mm, rounded up to 0.3 mm, between stations (the twin's
+    # true arm base moves up to 0.6-1.1 mm / 0.04-0.09 deg from the first view over a
+    # calibration, in the summary's diagnostic; the old 0.05 mm prior was far too tight)
+    joint: JointCalibrationConfig = JointCalibrationConfig(
+        station_rot_sigma_deg=0.03, station_shift_sigma_mm=0.3
+    )
+    pixel_sigma: float | None = Field(None, gt=0)
+    # four distances from 0.32 to 0.62 m, tilts to 45 deg and rolls of +-60 deg: the views'
+    # spread in reach (elbow angle) and orientation separates the camera's depth axis from
+    # the upper arm and forearm lengths a2, a3 and the board's place, which trade with it in
+    # a narrow grid (posterior correlation 0.93-0.97 at 0.40 / 0.48 m; the depth axis's
+    # posterior SD 0.53 -> 0.44 mm on seed 3 from tilts to 35 deg and rolls of +-40 deg to
+    # this grid; realistic seeds 0-9 against E6 X: max 0.54 -> 0.35 mm)
+    distances: tuple[float, ...] = (0.32, 0.42, 0.52, 0.62)
+    tilts_deg: tuple[float, ...] = (0.0, 15.0, 30.0, 45.0)
+    rolls_deg: tuple[float, ...] = (-60.0, 0.0, 60.0)
+
+
+@dataclass(frozen=True)
+class HandEyeProcedureResult:
+    """The calibration: ``T_flange_camera`` (4, 4) of ``method`` (``joint``, or the picked
+    OpenCV method's name) with the kinematics ``dh`` it belongs to; every OpenCV method
+    (``opencv``), the joint fit (``joint``) and its corner noise ``pixel_sigma`` (px); per
+    planned view a row (``stations``: used or why not, PnP figures, ``q``); the used views'
+    encoder readings ``q`` (N, 6) rad, nominal flange poses ``G`` (N, 4, 4) and board poses
+    in the camera ``C`` (N, 4, 4); ``first_view`` (corners, RMS px); ``joint_s`` the joint
+    fit's compute time (s)."""
+
+    T_flange_camera: Array
+    dh: DHParameters
+    method: str
+    opencv: HandEyeResult
+    joint: JointCalibrationResult
+    pixel_sigma: float
+    stations: list[dict[str, Any]]
+    q: Array
+    G: Array
+    C: Array
+    first_view: dict[str, float]
+    joint_s: float
+
+
+def _capture_board(camera: Camera, cfg: HandEyeProcedureConfig) -> CharucoPose:
+    K = camera.intrinsics.K
+    return board_pose(camera.capture().color, cfg.board.cv_board(), K, cfg.min_corners)
+
+
+def calibrate_hand_eye_on_robot(
+    arm: Arm,
+    camera: Camera,
+    robot: RobotDescription,
+    T_armbase_board_guess: Array,
+    q_ref: Array,
+    cfg: HandEyeProcedureConfig | None = None,
+    *,
+    wait: Callable[[float], None] = time.sleep,
+    log: Callable[[str], None] | None = None,
+    on_view: Callable[[int, CharucoPose], dict[str, Any]] | None = None,
+) -> HandEyeProcedureResult:
+    """Calibrate the wrist camera of ``arm`` / ``camera`` (module docstring) from the nominal
+    ``robot`` description, a rough board pose ``T_armbase_board_guess`` (4, 4) in the arm
+    base frame and the configuration ``q_ref`` (6,) rad the views stay near (no wrist flip).
+    ``wait(s)`` lets the arm settle after each move (a wall-clock sleep on hardware; the
+    twin steps its physics); ``on_view(i, pose)`` is called after each detected view and
+    its dict joins the view's row (an evaluation's ground truth; nothing here uses it).
+    Raises :class:`~mmpa.core.errors.InvalidInputError` on a malformed guess or ``q_ref``,
+    :class:`~mmpa.core.errors.UnreachableError` when the views cannot be planned,
+    :class:`~mmpa.calibration.charuco.BoardNotFoundError` when the first view shows no
+    board, and :class:`MMPAError` when fewer than 3 views saw it."""
+    cfg = cfg or HandEyeProcedureConfig()
+    log = log or (lambda m: None)
+    guess = np.asarray(T_armbase_board_guess, float)
+    if guess.shape != (4, 4) or not np.isfinite(guess).all():
+        raise InvalidInputError(
+            f"the board pose guess must be a finite 4x4 transform, got shape {guess.shape}"
+        )
+    R = guess[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise InvalidInputError("the board pose guess's rotation is not a rotation matrix")
+    q_ref = np.asarray(q_ref, float)
+    if q_ref.shape != (6,) or not np.isfinite(q_ref).all():
+        raise InvalidInputError(f"q_ref must be 6 finite joint angles (rad), got {q_ref!r}")
+    dh = robot.arm.dh
+    X_nom = robot.camera.T_flange_camera
+    q_lim = robot.arm.q_limits
+    corners = cfg.board.corners()
+    intr = camera.intrinsics
+    K, size = intr.K, (intr.width, intr.height)
+
+    # 1. first view, planned from the guess
+    first = plan_stations(
+        dh,
+        q_lim,
+        guess,
+        X_nom,
+        corners,
+        K,
+        size,
+        3,
+        q_ref,
+        tilts_deg=(0.0, 10.0),
+        rolls_deg=(0.0,),
+        max_joint_step=2 * np.pi,
+    )[0]
+    arm.move_joints(first.q)
+    wait(cfg.settle_s)
+    q0 = arm.joint_positions()
+    pose0 = _capture_board(camera, cfg)
+    Y0 = fk(dh, q0) @ X_nom @ pose0.T_camera_board
+    log(f"board found: {pose0.n_corners} corners, {pose0.rms_px:.3f} px RMS")
+
+    # 2. stations around the measured board
+    stations = plan_stations(
+        dh,
+        q_lim,
+        Y0,
+        X_nom,
+        corners,
+        K,
+        size,
+        cfg.stations,
+        q0,
+        distances=cfg.distances,
+        tilts_deg=cfg.tilts_deg,
+        rolls_deg=cfg.rolls_deg,
+    )
+
+    # 3. visit them
+    rows: list[dict[str, Any]] = []
+    qs, G, C, P, uv, rms = [], [], [], [], [], []
+    for i, st in enumerate(stations):
+        arm.move_joints(st.q)
+        wait(cfg.settle_s)
+        q = arm.joint_positions()
+        try:
+            pose = _capture_board(camera, cfg)
+        except BoardNotFoundError as e:
+            log(f"station {i}: skipped ({e})")
+            rows.append({"station": i, "used": False, "reason": str(e)})
+            continue
+        qs.append(q)
+        G.append(fk(dh, q))
+        C.append(pose.T_camera_board)
+        P.append(pose.detection.object_points)
+        uv.append(pose.detection.image_points)
+        rms.append(pose.rms_px)
+        row: dict[str, Any] = {
+            "station": i,
+            "used": True,
+            "tilt_deg": st.tilt_deg,
+            "azimuth_deg": st.azimuth_deg,
+            "roll_deg": st.roll_deg,
+            "distance_m": st.distance,
+            "corners": pose.n_corners,
+            "reproj_rms_px": pose.rms_px,
+        }
+        if on_view is not None:
+            row.update(on_view(i, pose))
+        row["q"] = [float(v) for v in q]
+        rows.append(row)
+        log(f"station {i}: {pose.n_corners} corners, {pose.rms_px:.3f} px")
+    if len(G) < 3:
+        raise MMPAError(f"only {len(G)} stations saw the board; need at least 3")
+    G_a, C_a = np.array(G), np.array(C)
+
+    # 4. OpenCV's five methods, the best by residuals
+    res = calibrate_hand_eye(G_a, C_a, corners)
+    # 5. the joint kinematic + hand-eye fit, from the best OpenCV solution
+    obs = BoardObservations.from_lists(qs, P, uv)
+    pix = cfg.pixel_sigma or max(float(np.sqrt(np.mean(np.square(rms)))), 0.05)
+    t = time.perf_counter()
+    Y_cv = board_consistency(G_a, C_a, res.T_flange_camera, corners).T_base_board
+    jcfg = cfg.joint.model_copy(update={"pixel_sigma": pix})
+    joint = calibrate_kinematics_hand_eye(dh, obs, K, res.T_flange_camera, Y_cv, jcfg)
+    joint_s = time.perf_counter() - t
+    log(
+        f"joint calibration: {joint.rms_px_start:.3f} -> {joint.rms_px:.3f} px RMS, "
+        f"{joint.n_identified} DH directions identified, {joint_s:.1f} s"
+    )
+    use_joint = cfg.method == "joint"
+    return HandEyeProcedureResult(
+        T_flange_camera=joint.T_flange_camera if use_joint else res.T_flange_camera,
+        dh=joint.dh if use_joint else dh,
+        method="joint" if use_joint else res.best,
+        opencv=res,
+        joint=joint,
+        pixel_sigma=pix,
+        stations=rows,
+        q=np.array(qs),
+        G=G_a,
+        C=C_a,
+        first_view={"corners": float(pose0.n_corners), "rms_px": float(pose0.rms_px)},
+        joint_s=joint_s,
+    )
