@@ -347,7 +347,9 @@ def test_a_jump_against_the_odometry_is_flagged_once(room) -> None:
     never flagged; one that jumps 0.5 m sideways while the base moves 3 cm is flagged on
     that update ("jumped 0.50 m") and not on the next (the flag is an event); one that holds
     its pose without updating while the odometry moves (a trilateration without a fix),
-    then finds the right pose, is not flagged (the anchor is carried by the odometry)."""
+    then finds the right pose, is not flagged (the anchor is carried by the odometry); one
+    that is lost 1 m off and jumps back onto the truth is flagged at the jump and ok from the
+    next update on (the windows restart at the jump)."""
     from mmpa.localization.amcl import PoseEstimate
     from mmpa.localization.monitor import MonitoredLocalizer
 
@@ -372,23 +374,33 @@ def test_a_jump_against_the_odometry_is_flagged_once(room) -> None:
             return self.pose
 
     n, k = len(P), 6
+    back = np.zeros((n, 3))
+    back[:k, :2] = (0.8, -0.6)  # 1 m off (lost) until update k, then back on the truth
     small = np.zeros((n, 3))
     small[::2, :2] = 0.05  # +-5 cm corrections every update: consistent
     jump = np.zeros((n, 3))
     jump[k:, 1] = 0.5  # from update k on, 0.5 m to the side
     held = np.ones(n, bool)
     held[3:9] = False  # no update (pose held) for 6 updates, 0.4 m of odometry
-    cases = ((small, np.ones(n, bool), []), (jump, np.ones(n, bool), [k]), (small, held, []))
+    cases = (
+        (small, np.ones(n, bool), []),
+        (jump, np.ones(n, bool), [k]),
+        (small, held, []),
+        (back, np.ones(n, bool), [k]),
+    )
     for offsets, updated, flagged in cases:
         loc = MonitoredLocalizer(Stub(offsets, updated), g, np.zeros(3))
         loc.initialize(P[0])
         est = [loc.update(o, s) for o, s in zip(P, scans, strict=True)]
         jumped = [i for i, e in enumerate(est) if "jumped" in e.reason]
         assert jumped == flagged, [e.reason for e in est]
-        if flagged:
+        if offsets is jump:
             assert "jumped 0.50 m and 0 deg against the odometry" in est[k].reason
             assert est[k].health.correction_xy == pytest.approx(0.5)
             assert est[k].health.correction_ratio > 1 > est[k + 1].health.correction_ratio
             assert not est[k].ok
+        if offsets is back:  # lost before the jump; the windows restart at it: ok after
+            assert est[k - 1].reason.startswith("lost")
+            assert all(e.ok for e in est[k + 1 :]), [e.reason for e in est]
         idle = [e.health.correction_xy for e, u in zip(est, updated, strict=True) if not u]
         assert np.all(np.isnan(idle))

@@ -31,7 +31,10 @@ Per :meth:`MonitoredLocalizer.update`:
    The flag is an event, cleared at the next update whose correction is plausible: a jump
    may as well be a filter correcting itself (on the real logs AMCL jumped 0.4-0.7 m back
    from 0.5-0.7 m off and was within 0.2 m one update later), and where the jump went wrong
-   the estimate's other figures judge it from then on.
+   the estimate's other figures judge it from then on. At a jump the explained/crossed and
+   fix windows restart (their values judged the pose before it); until full again, the
+   median of what they hold may clear "lost", not raise it (csail: AMCL jumped 0.69 m back
+   from 0.72 m off, and the old window kept it "lost" at 0.17 m).
 
 Any ``ok=False``/``reason`` of the wrapped localizer (Hector's rejected matches) is kept.
 Attributes the wrapper does not define are the wrapped localizer's (``loc.particles``,
@@ -163,8 +166,8 @@ class MonitoredLocalizer:
         odom = self._odometry(raw)
         est = self.inner.update(odom, scan, force)
         pose = np.asarray(self.inner.pose_at(odom), float)
-        health, reasons = self._judge(est, pose, scan)
         corr, ratio, why = self._correction(est.updated, odom, pose)
+        health, reasons = self._judge(est, pose, scan, ratio > 1)
         health = dataclasses.replace(
             health,
             correction_xy=float(np.hypot(*corr[:2])),
@@ -255,12 +258,19 @@ class MonitoredLocalizer:
         return share, crossed, int(m.size), best, best_share
 
     def _window(
-        self, share: float, crossed: float, alt: str, alt_share: float
+        self, share: float, crossed: float, alt: str, alt_share: float, restart: bool = False
     ) -> tuple[float, float, str, float]:
         """Append to the window; its median explained and crossed shares, and the
         alternative reading with its median gain (0 for updates where none was tried or
-        another one won). Updates the lost state (hysteresis)."""
+        another one won). Updates the lost state (hysteresis). ``restart`` (the estimate
+        jumped): the window starts afresh, its old shares judged the pose before the jump;
+        until it is full again, the median of what it holds may clear "lost" (a filter that
+        jumped back onto the right pose), not raise it."""
         c = self.health_cfg
+        if restart:
+            self._shares.clear()
+            self._crossed.clear()
+            self._alts.clear()
         if np.isfinite(share):
             self._shares.append(share)
             self._crossed.append(crossed)
@@ -274,6 +284,8 @@ class MonitoredLocalizer:
                 self._lost = True
             elif self._lost and good:
                 self._lost = False
+        elif self._lost and self._shares:
+            self._lost = not (window > c.recover_above and cross <= c.crossed_above)
         names = [n for n, _ in self._alts if n]
         if not names:
             return window, cross, "", 0.0
@@ -281,11 +293,16 @@ class MonitoredLocalizer:
         gain = float(np.median([g if n == top else 0.0 for n, g in self._alts]))
         return window, cross, top, gain
 
-    def _fix_check(self, pose: Array, scan: LaserScan) -> tuple[float, float, str]:
+    def _fix_check(
+        self, pose: Array, scan: LaserScan, restart: bool = False
+    ) -> tuple[float, float, str]:
         """The distance from this update's reflector fix (the wrapped localizer's, or the
         monitor's observer's) to the estimate ``pose``, its median over the last ``window``
-        fixes (NaN before 3), and the reason to say ``ok=False`` when that median exceeds
+        fixes (NaN before 3; ``restart``: the estimate jumped, the old distances are
+        dropped), and the reason to say ``ok=False`` when that median exceeds
         ``fix_disagree`` ('' if not)."""
+        if restart:
+            self._fix_offsets.clear()
         if self._observer is not None:
             fix = self._observer.observe(scan)
         else:
@@ -307,8 +324,11 @@ class MonitoredLocalizer:
         )
         return off, med, why
 
-    def _judge(self, est: PoseEstimate, pose: Array, scan: LaserScan) -> tuple[Health, list[str]]:
-        """The health at ``pose`` after this update and the reasons to say ``ok=False``."""
+    def _judge(
+        self, est: PoseEstimate, pose: Array, scan: LaserScan, jumped: bool = False
+    ) -> tuple[Health, list[str]]:
+        """The health at ``pose`` after this update and the reasons to say ``ok=False``
+        (``jumped``: the update's correction was implausible; the windows restart)."""
         c = self.health_cfg
         reasons: list[str] = []
         odom_ok = self._odom_flag == 0
@@ -322,7 +342,7 @@ class MonitoredLocalizer:
                 msg += "; no reflector fix: fell back to plain AMCL"
             reasons.append(msg)
         share, crossed, n, alt, alt_share = self._explained(pose, scan)
-        window, cross, alt, gain = self._window(share, crossed, alt, alt_share)
+        window, cross, alt, gain = self._window(share, crossed, alt, alt_share, jumped)
         full = len(self._shares) == c.window
         if full and gain > c.alt_margin and window < c.alt_below:
             reasons.append(
@@ -336,7 +356,7 @@ class MonitoredLocalizer:
                 f"its walls (medians of the last {len(self._shares)} updates; lost below "
                 f"{c.lost_below:.0%} or above {c.crossed_above:.0%})"
             )
-        fix_off, fix_win, why = self._fix_check(pose, scan)
+        fix_off, fix_win, why = self._fix_check(pose, scan, jumped)
         if why:
             reasons.append(why)
         spread = position_spread(est.cov) if est.n_particles > 0 else float("nan")
