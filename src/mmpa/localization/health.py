@@ -111,11 +111,11 @@ class HealthConfig(BaseModel):
     #: one update may move the estimate against the odometry by at most ``jump_xy +
     #: jump_per_m * travelled`` m and ``jump_theta + jump_per_rad * turned`` rad (travelled,
     #: turned: the odometry's path length and summed turn since the last updated estimate).
-    #: Measured at err < 0.2 m (benchmarks/audit_lost.py): the largest share of that limit
-    #: a correction used was 0.57 on the twin's drives, 0.67 csail, 0.62 intel, 0.79 freiburg
-    #: (0.25 m after 0.12 m travelled, from 0.40 m off); faults that explain the scan well
-    #: (reversed angles: Hector 0.44-0.58 m / 20-45 deg, a mirrored reflector identification
-    #: 1.1-1.6 m / 60-160 deg) 1.45 and up
+    #: Measured at err < 0.2 m (benchmarks/audit_lost.py, ``correction_ratio``: the share of
+    #: that limit a correction used): twin drives <= 0.57, csail 0.67, intel 0.62, freiburg
+    #: 0.70; the faults no other figure sees (reversed angles: Hector 0.43-0.58 m / 20-32 deg,
+    #: EnhancedAMCL 0.39 m / 18 deg, a mirrored reflector identification 1.2-1.6 m /
+    #: 104-161 deg) 1.26 and up
     jump_xy: float = Field(0.3, gt=0)
     jump_per_m: float = Field(0.2, ge=0)
     jump_theta: float = Field(np.deg2rad(15.0), gt=0)
