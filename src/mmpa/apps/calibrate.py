@@ -34,8 +34,12 @@ import numpy as np
 import yaml
 from pydantic import ConfigDict, Field
 
-from mmpa.backends.twin.calibration_board import BoardPlacement, T_map_board_truth
+from mmpa.backends.twin.calibration_board import BoardPlacement, T_map_board_truth, board_world
 from mmpa.backends.twin.error_model import ErrorModelConfig, ProfileName
+from mmpa.backends.twin.operator import rough_initial_pose
+from mmpa.backends.twin.scene import load_scene
+from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
+from mmpa.backends.twin.world import SimWorld
 from mmpa.calibration.hand_eye import (
     calibrate_hand_eye,
     pair_motion_stats,
@@ -46,12 +50,26 @@ from mmpa.calibration.kinematic import (
     fk_point_error,
     random_configurations,
 )
-from mmpa.calibration.reflector_survey import SurveyConfig
+from mmpa.calibration.reflector_survey import (
+    SurveyConfig,
+    SurveyError,
+    anchor_to,
+    laser_origin_heading,
+    match_reflectors,
+    survey_reflectors,
+)
 from mmpa.core.errors import MMPAError
-from mmpa.core.geometry import Array, T_to_vec6, inv
+from mmpa.core.geometry import Array, T_to_se2, T_to_vec6, inv
+from mmpa.localization.localizer import make_localizer
+from mmpa.maps.reflector_map import ReflectorMap, save_reflector_map
 from mmpa.missions.hand_eye import HandEyeProcedureConfig, calibrate_hand_eye_on_robot
-from mmpa.missions.survey_drive import SurveyDriveConfig
-from mmpa.robot.description import DHParameters, RobotDescription
+from mmpa.missions.navigate import localize_standing
+from mmpa.missions.survey_drive import SurveyDriveConfig, survey_drive, survey_stations
+from mmpa.navigation.mount_calibration import calibrate_lidar_mount
+from mmpa.navigation.planner import CostMap
+from mmpa.robot.description import DHParameters, RobotDescription, default_robot
+from mmpa.robot.kinematics import link_transforms
+from mmpa.robot.robot_file import save_robot
 
 __all__ = [
     "HandEyeConfig",
@@ -148,7 +166,6 @@ def last_link_error(dh_nominal: DHParameters, dh_true: DHParameters) -> Array:
     ``E6`` does not depend on ``q6`` (evaluated at 0). It is a constant factor on the flange
     side of ``fk``, so it cannot be separated from the hand-eye by any data taken with the
     nominal model (evaluation only: it needs the true DH)."""
-    from mmpa.robot.kinematics import link_transforms
 
     F_nom = link_transforms(dh_nominal, np.zeros(6))
     F_true = link_transforms(dh_true, np.zeros(6))
@@ -174,13 +191,11 @@ def run_hand_eye(
     """Run the calibration in the twin (module docstring); returns the summary (also written
     to ``out/summary.json`` with ``out/hand_eye.yaml`` when ``out`` is given). ``errors``
     replaces the error model of ``cfg.profile`` / ``cfg.seed`` (studies of one source)."""
-    from mmpa.backends.twin.calibration_board import board_world
 
     log = log or _log_default
     t0 = time.perf_counter()
     if errors is None:
         errors = ErrorModelConfig.from_profile(cfg.profile, seed=cfg.seed)
-    from mmpa.backends.twin.scene import load_scene
 
     scene = load_scene()
     placement = cfg.placement or BoardPlacement.for_site(scene, cfg.site)
@@ -371,9 +386,6 @@ def write_robot_file(
     """``robot`` (default: the robot in use, ``mmpa --robot FILE``, else the twin's) with the
     calibrated ``camera.T_flange_camera`` and, when given, the calibrated arm kinematics
     ``dh``, written as a robot file: the next run takes it with ``mmpa --robot PATH``."""
-    from mmpa.core.geometry import T_to_vec6
-    from mmpa.robot.description import default_robot
-    from mmpa.robot.robot_file import save_robot
 
     robot = robot or default_robot()
     vec = tuple(float(v) for v in T_to_vec6(T_flange_camera))
@@ -396,13 +408,6 @@ def run_lidar_mount(
     rough pose); compared with the TRUE mount. With ``out``: ``summary.json`` and a
     ``robot.yaml`` with the calibrated ``lidar.T_base_link_laser_vec`` (the nominal height,
     roll, pitch and yaw kept: a turn on the spot observes the translation only)."""
-    from mmpa.backends.twin.operator import rough_initial_pose
-    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
-    from mmpa.backends.twin.world import SimWorld
-    from mmpa.core.geometry import T_to_se2
-    from mmpa.navigation.mount_calibration import calibrate_lidar_mount
-    from mmpa.robot.description import default_robot
-    from mmpa.robot.robot_file import save_robot
 
     t0 = time.perf_counter()
     errors = ErrorModelConfig.from_profile(profile, seed=seed)
@@ -493,22 +498,6 @@ def run_reflector_survey(
     station poses and reflectors for evaluation)."""
     import dataclasses
 
-    from mmpa.backends.twin.operator import rough_initial_pose
-    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
-    from mmpa.backends.twin.world import SimWorld
-    from mmpa.calibration.reflector_survey import (
-        SurveyError,
-        anchor_to,
-        laser_origin_heading,
-        match_reflectors,
-        survey_reflectors,
-    )
-    from mmpa.localization.localizer import make_localizer
-    from mmpa.maps.reflector_map import ReflectorMap, save_reflector_map
-    from mmpa.missions.navigate import localize_standing
-    from mmpa.missions.survey_drive import survey_drive, survey_stations
-    from mmpa.navigation.planner import CostMap
-
     log = log or _log_default
     if cfg.method not in ("hector", "amcl"):
         raise MMPAError(
@@ -539,7 +528,6 @@ def run_reflector_survey(
         drive = survey_drive(
             w, loc, grid, lp, stations, dcfg, costmap=cm, truth=w.truth.base_pose2d, log=log
         )
-        from mmpa.core.geometry import T_to_se2
 
         lp_true = T_to_se2(w.true_robot.lidar.T_base_link_laser)
         p_true = w.scene.reflector_positions()
@@ -695,7 +683,6 @@ def _survey_defaults(cfg: ReflectorSurveyConfig, errors: ErrorModelConfig) -> Su
 
 def _eval_shift(est: Array, ref: Array) -> float:
     """Mean distance (mm) of ``est`` to its one-to-one match in ``ref``."""
-    from mmpa.calibration.reflector_survey import match_reflectors
 
     m = match_reflectors(est, ref)
     return float(1e3 * m.errors.mean()) if len(m.errors) else float("nan")
@@ -704,7 +691,5 @@ def _eval_shift(est: Array, ref: Array) -> float:
 def _write_robot_file_reflectors(path: Path, reflector_map: str) -> Path:
     """The robot in use (``mmpa --robot FILE``, else the twin's) as a robot file whose
     ``reflector_map`` names the surveyed map (relative: beside the robot file)."""
-    from mmpa.robot.description import default_robot
-    from mmpa.robot.robot_file import save_robot
 
     return save_robot(default_robot(), path, reflector_map=reflector_map)

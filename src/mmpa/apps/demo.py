@@ -25,8 +25,11 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from mmpa.apps.view import FoxgloveView, Tee
+from mmpa.backends.bag import BagWriter, Recorder
+from mmpa.backends.bag.record import ARM_RATE_HZ
 from mmpa.backends.twin.error_model import ErrorModelConfig
-from mmpa.backends.twin.operator import rough_initial_pose
+from mmpa.backends.twin.operator import get_demonstration, rough_initial_pose
 from mmpa.backends.twin.scene import load_scene
 from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
 from mmpa.backends.twin.world import SimWorld
@@ -34,9 +37,13 @@ from mmpa.core.config import save_config
 from mmpa.core.errors import MMPAError
 from mmpa.core.geometry import Array, T_to_vec6, apply, inv, se2_to_T, wrap_angle
 from mmpa.harness import plots
+from mmpa.harness.twin_site import MMPAExperimentConfig, key_error, pose_errors, teach_in_world
+from mmpa.localization.localizer import METHODS, make_localizer
 from mmpa.missions.navigate import NavigateConfig, navigate
+from mmpa.missions.teach_repeat import automate, execute_joint_path
 from mmpa.navigation import GoToPoseConfig, go_to_pose_command
 from mmpa.navigation.planner import CostMap
+from mmpa.tasks import write_bundle
 
 __all__ = ["DemoConfig", "run_demo", "snapshot"]
 
@@ -68,7 +75,6 @@ class DemoConfig(BaseModel):
     @field_validator("localization")
     @classmethod
     def _known_method(cls, v: str) -> str:
-        from mmpa.localization.localizer import METHODS
 
         if v != "truth" and v not in METHODS:
             raise ValueError(f"unknown localization {v!r}; valid: truth, {', '.join(METHODS)}")
@@ -164,10 +170,6 @@ def run_demo(
         taught = _teach_first(world, cfg, progress)
         recorder = None
         if record is not None or view is not None:
-            from mmpa.apps.view import FoxgloveView, Tee
-            from mmpa.backends.bag import BagWriter, Recorder
-            from mmpa.backends.bag.record import ARM_RATE_HZ
-
             sinks: list = []
             if record is not None:
                 bag = stack.enter_context(BagWriter(record, overwrite=True))
@@ -186,8 +188,6 @@ def run_demo(
             done, path = _drive_true_pose(world, goal, cfg, progress)
             loc_err = None
         else:
-            from mmpa.localization.localizer import make_localizer
-
             grid = twin_map(world)
             loc = make_localizer(
                 cfg.localization, grid, laser_pose2d(world), np.random.default_rng(cfg.errors.seed)
@@ -263,8 +263,6 @@ def _teach_first(world: SimWorld, cfg: DemoConfig, progress: Progress | None):
     """One-shot teaching of ``cfg.mmpa_task`` at the goal site, then back to the start."""
     if cfg.mmpa_task is None:
         return None
-    from mmpa.backends.twin.operator import get_demonstration
-    from mmpa.harness.twin_site import MMPAExperimentConfig, teach_in_world
 
     demo = get_demonstration(cfg.mmpa_task)
     if progress is not None:
@@ -277,9 +275,6 @@ def _teach_first(world: SimWorld, cfg: DemoConfig, progress: Progress | None):
 
 def _run_mmpa(world: SimWorld, taught, estimate: Array | None, out: Path, progress) -> dict:
     """Automation stage at the parked pose: IPE, eq. 11, execution; scored on the truth."""
-    from mmpa.harness.twin_site import key_error, pose_errors
-    from mmpa.missions.teach_repeat import automate, execute_joint_path
-    from mmpa.tasks import write_bundle
 
     if progress is not None:
         progress("MMPA: IPE and the taught path", 1.0)

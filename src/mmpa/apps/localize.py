@@ -31,9 +31,12 @@ from pydantic import BaseModel, ConfigDict, Field
 from mmpa.backends.bag import messages as rm
 from mmpa.backends.bag.reader import BagLidar, BagOdometry, BagPlayback, BagTopics, read_messages
 from mmpa.backends.bag.writer import BagWriter
-from mmpa.core.errors import InvalidInputError
+from mmpa.core.errors import ConfigError, InvalidInputError
 from mmpa.core.geometry import Array, T_to_se2, inv, se2_to_T, wrap_angle
 from mmpa.localization.health import Health
+from mmpa.localization.localizer import make_localizer
+from mmpa.maps.occupancy import OccupancyGrid, load_map
+from mmpa.maps.reflector_map import load_reflector_map
 
 if TYPE_CHECKING:  # pragma: no cover
     from mmpa.maps.occupancy import OccupancyGrid
@@ -110,7 +113,6 @@ class LocalizeResult:
 def grid_from_bag(path: str | Path, topics: BagTopics | None = None) -> OccupancyGrid:
     """The map recorded in a bag: ``/map`` with the landmarks of ``/reflectors`` (cylinder
     markers: centre, radius = half the marker's diameter)."""
-    from mmpa.maps.occupancy import OccupancyGrid
 
     tp = topics or BagTopics()
     raw = read_messages(path, [tp.map, tp.reflectors])
@@ -176,7 +178,6 @@ def localize_bag(
     playback: BagPlayback, grid: OccupancyGrid, cfg: LocalizeConfig | None = None
 ) -> LocalizeResult:
     """Run ``cfg.method`` over the bag's scans (see the module docstring)."""
-    from mmpa.localization.localizer import make_localizer
 
     cfg = cfg or LocalizeConfig()
     pb = playback
@@ -317,16 +318,11 @@ def run_localize(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if map_yaml is not None:
-        from mmpa.maps.occupancy import load_map
-
         grid = load_map(map_yaml)
     else:
         grid = grid_from_bag(bag, cfg.topics)
     if reflectors is not None:
         import dataclasses
-
-        from mmpa.core.errors import ConfigError
-        from mmpa.maps.reflector_map import load_reflector_map
 
         rm = load_reflector_map(reflectors)
         if np.ptp(rm.radius) > 1e-9:

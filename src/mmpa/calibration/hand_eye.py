@@ -41,6 +41,7 @@ import numpy as np
 from mmpa.core.errors import InvalidInputError, MMPAError, UnreachableError
 from mmpa.core.geometry import Array, inv, make_T
 from mmpa.robot.description import DHParameters
+from mmpa.robot.kinematics import fk, ik_nearest
 
 __all__ = [
     "METHODS",
@@ -335,7 +336,6 @@ def plan_stations(
     the rotation of ``T_base_flange`` (the first is the candidate nearest ``q_ref``). The
     chosen views are ordered nearest-neighbour in joint space (short moves). Raises
     :class:`UnreachableError` when fewer than ``n_stations`` candidates qualify."""
-    from mmpa.robot.kinematics import fk, ik_nearest
 
     if n_stations < 3:
         raise InvalidInputError(f"need at least 3 stations, got {n_stations}")

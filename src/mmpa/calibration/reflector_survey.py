@@ -64,6 +64,7 @@ from scipy.spatial import cKDTree
 
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array
+from mmpa.localization.reflectors import rigid_fit_2d
 
 __all__ = [
     "ReflectorFit",
@@ -517,7 +518,6 @@ def anchor_to(est: Array, ref: Array, gate: float = 0.25) -> tuple[Array, Array,
     ``s`` average to about ``s / sqrt(K)``. Returns (the moved ``est``, the transform
     ``[tx, ty, theta]``, the number of pairs). Raises :class:`SurveyError` with fewer than
     two pairs."""
-    from mmpa.localization.reflectors import rigid_fit_2d
 
     est = np.asarray(est, float).reshape(-1, 2)
     m = match_reflectors(est, ref, gate)

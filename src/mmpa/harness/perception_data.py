@@ -37,11 +37,18 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from mmpa.backends.twin.error_model import ErrorModelConfig
+from mmpa.backends.twin.noise import color_noise
+from mmpa.backends.twin.sensors import SimCamera
+from mmpa.backends.twin.world import SimWorld
 from mmpa.core.errors import ConfigError, InvalidInputError
 from mmpa.core.geometry import Array, inv, make_T, rot_z, se2_to_T
 from mmpa.perception import CLASSES, LIGHTING_CONDITIONS
 from mmpa.perception.dataset import Dataset, Sample, load_dataset, save_dataset
 from mmpa.perception.locate import look_at
+from mmpa.robot.description import CameraIntrinsics
+from mmpa.robot.kinematics import ik_nearest
+from mmpa.servo.grasp import look_configuration
 
 if TYPE_CHECKING:
     from mmpa.backends.twin.world import SimWorld
@@ -179,7 +186,6 @@ def sample_view(
 ) -> Array | None:
     """A random wrist-camera view of ``target`` (map) from the robot's side; the arm
     configuration (6,) by nominal IK (None if unreachable)."""
-    from mmpa.robot.kinematics import ik_nearest
 
     rb = world.nominal
     pose = world.truth.base_pose2d()
@@ -223,17 +229,12 @@ def boxes_from_segmentation(
 
 def render_dataset(cfg: DatasetConfig, log: object = None, progress: object = None) -> Dataset:
     """Render ``cfg.n_images`` labelled images (seeded by ``cfg.seed``)."""
-    from mmpa.backends.twin.noise import color_noise
-    from mmpa.backends.twin.sensors import SimCamera
-    from mmpa.backends.twin.world import SimWorld
-    from mmpa.robot.description import CameraIntrinsics
 
     if cfg.objects_max < cfg.objects_min:
         raise ConfigError("objects_max must be >= objects_min")
     unknown = set(cfg.lighting) - set(LIGHTING_CONDITIONS)
     if unknown:
         raise ConfigError(f"unknown lighting {sorted(unknown)}; known {LIGHTING_CONDITIONS}")
-    from mmpa.backends.twin.error_model import ErrorModelConfig
 
     try:
         errors = ErrorModelConfig(profile=cfg.profile)  # type: ignore[arg-type]
@@ -338,7 +339,6 @@ def _work_view_sample(
     experiment's reachable region; the image is the robot camera's frame downsampled to
     ``cfg.width`` x ``cfg.height``, boxes from the full-resolution segmentation."""
     from mmpa.perception.ssd import to_input
-    from mmpa.servo.grasp import look_configuration
 
     placed = random_table_scene(world, rng, objs[1:], dis)
     _place_in_region(world, rng, objs[0], placed, REGION)
@@ -379,7 +379,6 @@ def servo_view_configuration(
     the tool x at a yaw ``~ U(-pi, pi)``; ``p_top`` is the object's origin raised by its rest
     height (the top of an upright object). Nominal IK nearest the first view's configuration;
     raises :class:`mmpa.core.errors.UnreachableError` (or another IK error) when out of reach."""
-    from mmpa.robot.kinematics import ik_nearest
 
     rb = world.nominal
     _, h = _footprint(world, name)
@@ -393,7 +392,6 @@ def servo_view_configuration(
     T_arm_tcp = make_T(np.column_stack([x, np.cross(z, x), z]), p_tcp)
     T_arm_flange = T_arm_tcp @ inv(rb.gripper.T_flange_tcp)
     q_min, q_max = rb.arm.q_limits
-    from mmpa.servo.grasp import look_configuration
 
     _, top, _ = desk_frame(world)
     look = np.array([*LOOK_TARGET, top - rb.T_base_link_arm_base[2, 3]])

@@ -45,6 +45,10 @@ from pydantic import BaseModel
 
 from mmpa.core.config import load_config, save_config
 from mmpa.core.errors import ConfigError, UnknownNameError
+from mmpa.core.yamlio import load_yaml
+from mmpa.harness import executor as _executor
+from mmpa.harness.executor import SerialExecutor, make_executor
+from mmpa.harness.recording import record_trials
 
 __all__ = [
     "EXPERIMENTS",
@@ -154,7 +158,6 @@ def run_experiment(
     ``record/profile-NAME``); only the experiments whose trials run on the executor
     (``PARALLEL_TRIALS``: the paper 000 twin experiments) can record, the others raise a
     :class:`ConfigError` naming the experiment."""
-    from mmpa.harness import executor as _executor
 
     # local workers start now and import what the trials need while this process imports
     # the experiment (~1 s of a 30 s two-worker run on two cores)
@@ -230,9 +233,6 @@ def _run_experiment(
     if parallel:
         from contextlib import nullcontext
 
-        from mmpa.harness.executor import make_executor
-        from mmpa.harness.recording import record_trials
-
         with (
             make_executor(executor, workers, out, resume, ray_address) as ex,
             record_trials(record) if record is not None else nullcontext() as target,
@@ -282,7 +282,6 @@ def run_trials(ctx: Context, jobs: Sequence[Any], stage: str) -> list[dict[str, 
     """``jobs`` (:data:`mmpa.harness.executor.Job`) on ``ctx.executor`` (None: in this
     process, one after the other), progress reported as ``stage``: their records
     (``result``, ``trial_s``, ``worker_rss_mb``) in job order."""
-    from mmpa.harness.executor import SerialExecutor
 
     ex = ctx.executor if ctx.executor is not None else SerialExecutor()
     try:
@@ -334,7 +333,6 @@ def _parallel(module_path: str, flag: str = "PARALLEL_TRIALS") -> bool:
 def _check_resumable(cfg: BaseModel, path: Path) -> None:
     """A run folder can be resumed with ``cfg`` if its ``config.yaml`` differs at most in
     ``trials`` (a trial's row does not depend on how many there are)."""
-    from mmpa.core.yamlio import load_yaml
 
     if not path.exists():
         return  # nothing to resume: a fresh run

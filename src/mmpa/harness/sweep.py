@@ -56,6 +56,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from mmpa.core.config import load_config
 from mmpa.core.errors import ConfigError, MMPAError
 from mmpa.core.yamlio import load_yaml
+from mmpa.harness.executor import EXECUTORS
 from mmpa.harness.runner import (
     EXPERIMENTS,
     experiment_module,
@@ -287,7 +288,6 @@ def run_sweep(
 
 def check_run_options(workers: int, executor: str) -> None:
     """Refuse a worker count below 1 or an unknown executor (before anything runs)."""
-    from mmpa.harness.executor import EXECUTORS
 
     if executor not in EXECUTORS:
         raise ConfigError(f"unknown executor {executor!r}; valid: {', '.join(EXECUTORS)}")

@@ -37,6 +37,8 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from mmpa.backends.bag import BagWriter, Recorder
+from mmpa.backends.bag.record import ARM_RATE_HZ
 from mmpa.backends.twin.error_model import ErrorModelConfig
 from mmpa.backends.twin.operator import (
     Demonstration,
@@ -47,7 +49,7 @@ from mmpa.backends.twin.operator import (
     true_tcp_in_map,
 )
 from mmpa.backends.twin.scene import SceneConfig, load_scene
-from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
+from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
 from mmpa.backends.twin.world import SimWorld
 from mmpa.core.errors import ConfigError, UnknownNameError
 from mmpa.core.geometry import (
@@ -61,12 +63,14 @@ from mmpa.core.geometry import (
     se2_to_T,
     translation_error,
 )
+from mmpa.harness.executor import SerialExecutor
 from mmpa.harness.recording import record_spec, trial_bag_name
+from mmpa.harness.runner import stats
 from mmpa.harness.twin_localization import errors_follow_seed
 from mmpa.ipe.loop import IPEResult
 from mmpa.localization.localizer import make_localizer
 from mmpa.maps.occupancy import OccupancyGrid
-from mmpa.missions.navigate import localize_standing
+from mmpa.missions.navigate import NavigateConfig, localize_standing, navigate
 from mmpa.missions.teach_repeat import (
     AutomationConfig,
     TeachConfig,
@@ -75,6 +79,7 @@ from mmpa.missions.teach_repeat import (
     replay_tmma,
     teach,
 )
+from mmpa.navigation.planner import CostMap
 from mmpa.tasks import Task, read_bundle, write_bundle
 from mmpa.tasks.bundle import BUNDLE_FILES
 
@@ -273,8 +278,6 @@ class TwinSite:
         :attr:`world` is the recording stand-in inside the block, the world itself again
         after it. The recorder draws nothing and steps the same physics, so the run is the
         run without recording. Yields ``path``."""
-        from mmpa.backends.bag import BagWriter, Recorder
-        from mmpa.backends.bag.record import ARM_RATE_HZ
 
         if self.recorder is not None:
             raise ConfigError(f"site {self.site!r} is being recorded already")
@@ -336,7 +339,6 @@ class TwinSite:
     def park_by_driving(self) -> Array:
         """Start near Site 0 (told the rough pose), navigate to the site on the localization
         estimate, stop; the parking error is whatever the physics and localization leave."""
-        from mmpa.missions.navigate import NavigateConfig, navigate
 
         w = self.world
         grid, costmap = self._navigation()
@@ -410,9 +412,6 @@ class TwinSite:
         )
 
     def _navigation(self):
-        from mmpa.backends.twin.twin_maps import twin_nav_map
-        from mmpa.missions.navigate import NavigateConfig
-        from mmpa.navigation.planner import CostMap
 
         if not hasattr(self, "_nav"):
             w = self.world
@@ -427,7 +426,6 @@ class TwinSite:
         then straight in (a differential base that turns in place next to the bench or on the
         Site 2' bump stalls), to 1 cm / 0.01 rad (IPE measures what is left). Returns the new
         localization estimate ``T_map_base``."""
-        from mmpa.missions.navigate import NavigateConfig, navigate
 
         w = self.world
         grid, costmap = self._navigation()
@@ -570,7 +568,6 @@ def offset_row(truth: Array) -> dict[str, float]:
 def ipe_stats(rows: list[dict]) -> dict:
     """Success rate of a group of IPE trial rows, and iterations, E_R, E_t statistics (see
     :func:`mmpa.harness.runner.stats`) over its successful trials."""
-    from mmpa.harness.runner import stats
 
     ok = [x for x in rows if x["ipe_ok"]]
     return {
@@ -803,7 +800,6 @@ def run_trial_groups(
     and wherever it ran. Rows carry the trial's wall time ``trial_s`` and the peak memory
     of the process that ran it ``worker_rss_mb``. ``kind="park"`` only parks
     (``mmpa experiment parking``)."""
-    from mmpa.harness.executor import SerialExecutor
 
     own = executor is None
     ex = SerialExecutor() if own else executor

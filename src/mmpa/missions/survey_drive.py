@@ -40,6 +40,9 @@ from mmpa.calibration.reflector_survey import (
 from mmpa.core.errors import InvalidInputError, MMPAError
 from mmpa.core.geometry import Array
 from mmpa.localization.reflectors import DetectionConfig, detect_reflectors
+from mmpa.missions.navigate import NavigateConfig, navigate
+from mmpa.navigation.follower import FollowerConfig
+from mmpa.navigation.planner import plan_path
 
 if TYPE_CHECKING:  # pragma: no cover
     from mmpa.missions.navigate import NavigateConfig
@@ -85,7 +88,6 @@ def survey_stations(cm: Any, start: Array, route: list[Array], spacing: float) -
     """Station poses ``[x, y, theta]`` along the planned path (on the cost map ``cm``) from
     ``start`` through the ``route`` poses: every ``spacing`` m (heading along the path) and
     each route pose."""
-    from mmpa.navigation.planner import plan_path
 
     out: list[Array] = []
     here = np.asarray(start, float)
@@ -127,8 +129,6 @@ def _stop_navigation(leg_timeout: float) -> NavigateConfig:
     """How the drive reaches a survey stop: a stop needs a pose estimate, not a precise
     park: 2 cm / 2 deg, no staging stretch (the stops lie on the path, 1 m apart), no
     re-approach; ``leg_timeout`` s per leg."""
-    from mmpa.missions.navigate import NavigateConfig
-    from mmpa.navigation.follower import FollowerConfig
 
     fin = FollowerConfig().final.model_copy(update={"pos_tol": 0.02, "yaw_tol": np.deg2rad(2.0)})
     return NavigateConfig(
@@ -159,7 +159,6 @@ def survey_drive(
     lidar mount ``laser_pose`` ``[x, y, yaw]`` in ``base_link``. ``truth()`` (evaluation
     only; never steers) gives the base's true pose per stop. Raises
     :class:`~mmpa.core.errors.InvalidInputError` on a malformed mount or station."""
-    from mmpa.missions.navigate import navigate
 
     cfg = cfg or SurveyDriveConfig()
     log = log or (lambda m: None)

@@ -16,6 +16,7 @@ import numpy as np
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array, apply
 from mmpa.robot.description import CameraIntrinsics
+from mmpa.robot.limits import JointLimits
 
 __all__ = [
     "Arm",
@@ -28,6 +29,7 @@ __all__ = [
     "PhotoSensor",
     "PointCloud",
     "RGBDFrame",
+    "StreamingArm",
     "deproject",
     "mean_frame",
 ]
@@ -268,6 +270,34 @@ class Arm(Protocol):
         With ``record_hz``, also read the encoders at that rate while moving and return
         ``(t (M,), q (M, 6))``.
         """
+        ...
+
+
+@runtime_checkable
+class StreamingArm(Arm, Protocol):
+    """An :class:`Arm` that also takes streaming joint set-points (URScript ``servoj``, a
+    ros2_control forward position controller): what a visual servo loop drives.
+
+    Streaming contract: ``command(q)`` sets the target ``q`` (rad, (6,)) from now on and
+    returns at once; the backend moves its set-point toward it every control period within
+    ``stream_limits`` (velocity and acceleration, :func:`mmpa.robot.limits.limit_setpoint`),
+    so no stream of commands can drive a joint past them; targets outside the position
+    limits are refused before anything moves. ``stream_acceleration_limited`` True (the
+    default) keeps the stream within ``limits.qdd_max``; False allows the hard stream limit
+    ``qdd_stream_max`` (:meth:`mmpa.robot.limits.JointLimits.stream`). ``stopped()`` says why
+    the controller will not move (protective or emergency stop), or None: a mission stops
+    with that message."""
+
+    limits: JointLimits
+    stream_limits: JointLimits
+    stream_acceleration_limited: bool
+
+    def command(self, q: Array) -> None:
+        """Streaming target ``q`` (rad, (6,)); returns at once."""
+        ...
+
+    def stopped(self) -> str | None:
+        """Why the controller will not move (protective / emergency stop), or None."""
         ...
 
 

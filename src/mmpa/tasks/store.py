@@ -36,6 +36,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+from mmpa import __version__
 from mmpa.core.errors import (
     CorruptTaskError,
     InvalidInputError,
@@ -136,7 +137,6 @@ def default_store_path() -> Path:
 
 
 def _mmpa_version() -> str:
-    from mmpa import __version__
 
     return __version__
 

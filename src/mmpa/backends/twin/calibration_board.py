@@ -29,6 +29,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.backends.twin import textures
+from mmpa.backends.twin.mjcf import BuiltModel
+from mmpa.backends.twin.scene import load_scene
+from mmpa.backends.twin.world import SimWorld as _SimWorld
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array, inv, make_T, rot_y, rot_z, se2_to_T
 from mmpa.maps.board import CharucoBoardSpec
@@ -173,14 +176,11 @@ def board_world(
     site's
     park pose (``errors``, ``robot``, ``scene``, ``episode``: as ``SimWorld`` takes them).
     The board's TRUE pose: :func:`T_map_board_truth`."""
-    from mmpa.backends.twin.scene import load_scene
-    from mmpa.backends.twin.world import SimWorld as _SimWorld
 
     spec = spec or CharucoBoardSpec()
     placement = placement or BoardPlacement()
     scene = scene or load_scene()
     pose = scene.site(site).pose2d
-    from mmpa.backends.twin.mjcf import BuiltModel
 
     T_map_geom = placement.T_map_geom(pose, spec)
 

@@ -27,6 +27,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from mmpa.core.errors import UnknownNameError
 from mmpa.core.geometry import Array, T_to_vec6, vec6_to_T
 from mmpa.robot.description import DHParameters, RobotDescription
 
@@ -402,7 +403,6 @@ class ErrorModel:
 
     def sample_parking_offset(self, site: str, rng: np.random.Generator) -> Array:
         """Paper 000 Table 2 parking error ``[tx, ty, tz, r, p, y]`` (m, rad) for ``site``."""
-        from mmpa.core.errors import UnknownNameError
 
         table = self.config.parking.table
         if site not in table:

@@ -23,7 +23,13 @@ from ruckig import InputParameter, Result, Ruckig, Trajectory
 from mmpa.backends.twin.error_model import ErrorModel, ErrorModelConfig
 from mmpa.backends.twin.lidar_noise import SmoothWarp
 from mmpa.backends.twin.mjcf import MOUNT_JOINTS, BuiltModel, build_model
+from mmpa.backends.twin.noise import (
+    color_session_gain,
+    depth_bias_pattern,
+    session_disparity,
+)
 from mmpa.backends.twin.scene import SceneConfig, load_scene
+from mmpa.backends.twin.scene_change import apply_scene_change
 from mmpa.backends.twin.sensors import (
     CAMERA_NAME,
     SimCamera,
@@ -318,11 +324,6 @@ class SimWorld:
 
         Returns what the scene change moved (name -> ``(dx, dy, dyaw)`` in map, m and rad;
         evaluation only). The robot's pose and the episode streams are unchanged."""
-        from mmpa.backends.twin.noise import (
-            color_session_gain,
-            depth_bias_pattern,
-            session_disparity,
-        )
 
         k = int(session)
         if k < 0:
@@ -348,7 +349,6 @@ class SimWorld:
         )
         if self._camera is not None:
             self._camera.set_session(*self._camera_session)
-        from mmpa.backends.twin.scene_change import apply_scene_change
 
         self.scene_changes = apply_scene_change(self, k)
         return self.scene_changes
@@ -621,6 +621,10 @@ class SimArm(StreamLimitsSwitch):
 
     def joint_velocities(self) -> Array:
         return self._w.data.qvel[self._w._arm_dadr].copy()
+
+    def stopped(self) -> str | None:
+        """Why the arm will not move: never, in the twin (it has no safety controller)."""
+        return None
 
     def _check(self, q: Array) -> Array:
         return check_target(q, self.limits)

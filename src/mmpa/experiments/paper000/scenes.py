@@ -12,6 +12,7 @@ from __future__ import annotations
 from pydantic import Field
 
 from mmpa.backends.twin.scene import DeskItem, SceneConfig, load_scene
+from mmpa.core.errors import UnknownNameError
 from mmpa.experiments.paper000 import figures as paper000
 from mmpa.harness.runner import Context, Outcome, markdown_table
 from mmpa.harness.twin_site import (
@@ -77,8 +78,6 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     groups = []
     for name in cfg.scenes:
         if name not in SCENES:
-            from mmpa.core.errors import UnknownNameError
-
             raise UnknownNameError("scene", name, list(SCENES))
         _, color = SCENES[name]
         ipe = cfg.automation.ipe.model_copy(update={"use_color": color})

@@ -21,11 +21,26 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, Field
 
+from mmpa.backends.bag.record import ARM_RATE_HZ
 from mmpa.backends.twin.error_model import ErrorModelConfig
-from mmpa.harness.perception_data import LOOK_HEIGHT, LOOK_TARGET, REGION
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.errors import UnknownNameError
+from mmpa.harness.perception_data import (
+    DESK_PARK,
+    LOOK_HEIGHT,
+    LOOK_TARGET,
+    REGION,
+    _footprint,
+    boxes_from_segmentation,
+    desk_frame,
+    desk_object_names,
+    random_table_scene,
+)
+from mmpa.harness.recording import recording_folder, trial_recorder
 from mmpa.harness.runner import Context, Outcome, markdown_table, run_trials
 from mmpa.perception import CLASSES, LIGHTING_CONDITIONS
-from mmpa.servo.grasp import GraspConfig
+from mmpa.robot.description import default_robot
+from mmpa.servo.grasp import GraspConfig, TrackingGrasp, look_configuration
 
 PAPER = "paper 001 Table 3 (success rate per object and light condition, 20 trials each)"
 
@@ -69,7 +84,6 @@ class Operator:
     (every 0.5-1.5 s), bouncing off the region's edges, until :meth:`release`."""
 
     def __init__(self, world: Any, name: str, speed: float, rng: np.random.Generator) -> None:
-        from mmpa.harness.perception_data import desk_frame
 
         self.world, self.name, self.speed, self.rng = world, name, speed, rng
         self.T_desk, _, _ = desk_frame(world)
@@ -183,9 +197,6 @@ def grasp_trial(
 ) -> dict[str, Any]:
     """One trial in the twin with the wrist camera streaming ``resolution`` (restored after);
     returns a result row (truth used only for evaluation)."""
-    from mmpa.core.geometry import inv
-    from mmpa.harness.perception_data import DESK_PARK, desk_frame, random_table_scene
-    from mmpa.servo.grasp import look_configuration
 
     x, y, th = DESK_PARK
     pose = np.array([x, y, th]) + rng.uniform(-1, 1, 3) * np.array([0.05, 0.03, 0.05])
@@ -222,7 +233,6 @@ def grasp_trial(
     res = run_grasp(world, grasper, name, wait, on_event, resolution)
     op.release()
     held = held_in_the_physics(world, name, top)
-    del inv
     reason = res.reason if held or res.reason != "grasped" else "dropped"
     return {
         "object": name,
@@ -257,7 +267,6 @@ class _Probe:
     before that (``touched_before_close``: the object was knocked) and a failure class."""
 
     def __init__(self, world: Any, name: str) -> None:
-        from mmpa.harness.perception_data import _footprint, desk_frame, desk_object_names
 
         self.world, self.name = world, name
         m = world.model
@@ -357,7 +366,6 @@ def random_table_scene_keep(
     world: Any, rng: np.random.Generator, name: str, placed: dict[str, np.ndarray]
 ) -> None:
     """Place ``name`` in :data:`REGION` away from the already placed objects."""
-    from mmpa.harness.perception_data import _footprint, desk_frame
 
     T_desk, _, _ = desk_frame(world)
     r, h = _footprint(world, name)
@@ -386,7 +394,6 @@ class OracleDetector:
 
     def detect(self, image: np.ndarray, score_threshold: float | None = None) -> list[Any]:
         """Truth boxes of the visible objects (``score_threshold`` ignored: every box scores 1)."""
-        from mmpa.harness.perception_data import boxes_from_segmentation
         from mmpa.perception.ssd import Detection
 
         seg = self.world.camera.segmentation()
@@ -400,8 +407,6 @@ class OracleDetector:
 
 def make_grasper(cfg: Any, world: Any = None) -> Any:
     from mmpa.perception.ssd import Detector
-    from mmpa.robot.description import default_robot
-    from mmpa.servo.grasp import TrackingGrasp
 
     if cfg.weights == "oracle":
         det = OracleDetector(world)
@@ -435,7 +440,6 @@ def twin_for(cfg: Any) -> tuple[Any, Any]:
     """This process's (world, grasper) for ``cfg`` (a grasp experiment :class:`Config`):
     built on first use, then kept. Trials reseed the world themselves (``set_episode`` and
     their own generator), so which trials ran in it before does not change a trial."""
-    from mmpa.backends.twin.world import SimWorld
 
     wkey = cfg.errors.model_dump_json()
     if wkey not in _TWINS:
@@ -462,8 +466,6 @@ def recorded(world: Any, folder: str | None, label: dict, trial: int) -> Iterato
     if folder is None:
         yield world
         return
-    from mmpa.backends.bag.record import ARM_RATE_HZ
-    from mmpa.harness.recording import trial_recorder
 
     with trial_recorder(folder, label, "0", trial, world, ARM_RATE_HZ) as rec:
         yield rec.world()
@@ -475,7 +477,6 @@ def grasp_job(
     """Trial ``t`` of the cell (``obj``, ``light``) (a worker job): its row. Every draw (scene,
     sensor noise) from the trial's own seed, so a trial alone is the same as in the table.
     ``record``: a folder for the trial's bag (:func:`recorded`)."""
-    from mmpa.backends.twin.world import SimWorld
 
     cfg = Config.model_validate_json(cfg_json)
     world, grasper = twin_for(cfg)
@@ -503,8 +504,6 @@ def run_jobs(ctx: Context, jobs: list, stage: str) -> list[dict[str, Any]]:
 
 
 def run(cfg: Config, ctx: Context, progress: Callable[[str, float], None] | None = None) -> Outcome:
-    from mmpa.backends.twin.world import SimWorld
-    from mmpa.core.errors import UnknownNameError
 
     for o in cfg.objects:
         if o not in CLASSES:
@@ -512,7 +511,6 @@ def run(cfg: Config, ctx: Context, progress: Callable[[str, float], None] | None
     for li in cfg.lighting:
         if li not in SimWorld.LIGHTING:
             raise UnknownNameError("lighting condition", li, list(SimWorld.LIGHTING))
-    from mmpa.harness.recording import recording_folder
 
     n = cfg.n_trials()
     cfg_json = cfg.model_dump_json()

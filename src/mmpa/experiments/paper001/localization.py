@@ -34,6 +34,7 @@ from mmpa.backends.twin.operator import rough_initial_pose
 from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
 from mmpa.backends.twin.world import SimWorld
 from mmpa.core.geometry import wrap_angle
+from mmpa.harness.recording import recording_folder, trial_recorder
 from mmpa.harness.runner import Context, Outcome, markdown_table, run_trials, stats
 from mmpa.harness.twin_localization import errors_follow_seed
 from mmpa.localization.amcl import AMCLConfig
@@ -189,8 +190,6 @@ def _trial(
         loc = make_localizer(method, grid, lp, np.random.default_rng([cfg.seed, k, 7]))
         robot: Any = world
         if record is not None:  # the same trial, observed (mmpa.backends.bag.Recorder)
-            from mmpa.harness.recording import trial_recorder
-
             label = {"method": method}
             rec = stack.enter_context(trial_recorder(record, label, "0", k, world))
             robot, loc = rec.world(), rec.localizer(loc)
@@ -283,7 +282,6 @@ def kidnap_job(cfg_json: str, k: int, method: str, mount: list[float] | None) ->
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
-    from mmpa.harness.recording import recording_folder
 
     for m in cfg.methods:
         if m not in METHODS:

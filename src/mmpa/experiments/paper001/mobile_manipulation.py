@@ -47,12 +47,32 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from mmpa.backends.bag.record import ARM_RATE_HZ
 from mmpa.backends.twin.error_model import ErrorModelConfig
-from mmpa.core.geometry import Array, se2_to_T, wrap_angle
+from mmpa.backends.twin.lidar_noise import rough_pose
+from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
+from mmpa.backends.twin.world import SimWorld
+from mmpa.core.errors import UnknownNameError
+from mmpa.core.geometry import Array, inv, se2_to_T, wrap_angle
+from mmpa.experiments.paper001.grasp import (
+    LOOK_HEIGHT,
+    LOOK_TARGET,
+    REGION,
+    held_in_the_physics,
+    make_grasper,
+    run_grasp,
+    run_jobs,
+)
 from mmpa.experiments.paper001.localization import corridor_start, initial_sigmas
+from mmpa.harness.perception_data import DESK_PARK, _place_in_region, desk_frame, random_table_scene
+from mmpa.harness.recording import recording_folder, trial_recorder
 from mmpa.harness.runner import Context, Outcome, markdown_table, stats
 from mmpa.harness.twin_localization import errors_follow_seed
-from mmpa.missions.navigate import NavigateConfig
+from mmpa.localization.localizer import METHODS, make_localizer
+from mmpa.missions.navigate import NavigateConfig, localize_standing, navigate
+from mmpa.navigation.planner import CostMap, plan_path
+from mmpa.perception import CLASSES
+from mmpa.servo.grasp import look_configuration
 
 PAPER = "paper 001 (Zhou et al. 2020) §4.3.4, Table 4 (mobile manipulation, 20 runs per object)"
 #: the runner may run this experiment's trials on an executor (``--workers``, ``--executor``)
@@ -175,7 +195,6 @@ def turn_on_the_spot(
 def search_desk(world: Any, localizer: Any, cfg: Config) -> tuple[bool, float]:
     """Turn on the spot (toward the desk side first, on the estimate) until the desk's front
     legs are in the scan (:func:`desk_in_scan`); returns ``(found, seconds)``."""
-    from mmpa.backends.twin.twin_maps import laser_pose2d
 
     legs = desk_front_legs(world)
     T_base_laser = se2_to_T(*laser_pose2d(world))
@@ -213,9 +232,6 @@ def turn_to_heading(
 def place_trial_objects(world: Any, rng: np.random.Generator, name: str, others: int) -> None:
     """The target in the reachable region (the ``grasp`` experiment's), ``others`` other
     detector classes and each distractor with p = 0.5 anywhere on the desk."""
-    from mmpa.experiments.paper001.grasp import REGION
-    from mmpa.harness.perception_data import _place_in_region, random_table_scene
-    from mmpa.perception import CLASSES
 
     pool = [c for c in CLASSES if c != name]
     objs = rng.choice(pool, min(others, len(pool)), replace=False).tolist()
@@ -232,31 +248,11 @@ def mm_trial(
     the estimates, every camera frame, the arm at 50 Hz, the truth; ``--record``)."""
     from contextlib import ExitStack
 
-    from mmpa.backends.twin.lidar_noise import rough_pose
-    from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
-    from mmpa.backends.twin.world import SimWorld
-    from mmpa.core.geometry import inv, se2_to_T
-    from mmpa.experiments.paper001.grasp import (
-        LOOK_HEIGHT,
-        LOOK_TARGET,
-        held_in_the_physics,
-        run_grasp,
-    )
-    from mmpa.harness.perception_data import DESK_PARK, desk_frame
-    from mmpa.localization.localizer import make_localizer
-    from mmpa.missions.navigate import localize_standing, navigate
-    from mmpa.navigation.planner import CostMap, plan_path
-    from mmpa.perception import CLASSES
-    from mmpa.servo.grasp import look_configuration
-
     rng = np.random.default_rng([cfg.seed, k, CLASSES.index(name)])
     w0 = time.perf_counter()
     with SimWorld(errors=cfg.errors, site="0", episode=k) as world, ExitStack() as stack:
         rec = None
         if record is not None:  # the same run, observed: `world` is the recording stand-in
-            from mmpa.backends.bag.record import ARM_RATE_HZ
-            from mmpa.harness.recording import trial_recorder
-
             label = {"object": name}
             rec = stack.enter_context(trial_recorder(record, label, "0", k, world, ARM_RATE_HZ))
             world = rec.world()
@@ -346,7 +342,6 @@ _GRASPERS: dict[str, Any] = {}
 def mm_job(cfg_json: str, k: int, name: str, record: str | None) -> dict[str, Any]:
     """Run ``k`` for object ``name`` (a worker job): its row. The world, the scene and
     every draw are the run's own (``episode=k``, ``[seed, k, object]``)."""
-    from mmpa.experiments.paper001.grasp import make_grasper
 
     cfg = Config.model_validate_json(cfg_json)
     key = cfg.model_dump_json(exclude={"seed", "trials", "objects"})
@@ -357,9 +352,6 @@ def mm_job(cfg_json: str, k: int, name: str, record: str | None) -> dict[str, An
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
-    from mmpa.core.errors import UnknownNameError
-    from mmpa.localization.localizer import METHODS
-    from mmpa.perception import CLASSES
 
     for o in cfg.objects:
         if o not in CLASSES:
@@ -368,8 +360,6 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         raise UnknownNameError("localization method", cfg.method, list(METHODS))
     if cfg.weights == "oracle":
         raise UnknownNameError("weights", "oracle", ["a weights file", "None (shipped)"])
-    from mmpa.experiments.paper001.grasp import run_jobs
-    from mmpa.harness.recording import recording_folder
 
     n = cfg.n_trials()
     cfg_json = cfg.model_dump_json()

@@ -40,6 +40,7 @@ from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
 from mmpa.backends.twin.world import SimWorld
 from mmpa.core.geometry import wrap_angle
 from mmpa.experiments.paper001.localization import TwinLocalization, method_mounts
+from mmpa.harness.recording import recording_folder, trial_recorder
 from mmpa.harness.runner import Context, Outcome, markdown_table, run_trials, stats
 from mmpa.localization.localizer import METHODS, _observer, make_localizer
 from mmpa.localization.trilateration import trilaterate
@@ -169,8 +170,6 @@ def _dropout_run(
         }
         sensors: Any = world  # where the localizers' scans and odometry are read
         if record is not None:  # the same run, observed (the harness keeps the world)
-            from mmpa.harness.recording import trial_recorder
-
             m0 = "enhanced" if "enhanced" in locs else cfg.methods[0]
             rec = stack.enter_context(trial_recorder(record, {"method": m0}, "0", k, world))
             rec.write_map(grid)
@@ -351,7 +350,6 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     mounts = method_mounts(cfg, [*cfg.methods, "enhanced"], cfg.site)
     ml = {m: None if v is None else [float(x) for x in v] for m, v in mounts.items()}
     cfg_json = cfg.model_dump_json()
-    from mmpa.harness.recording import recording_folder
 
     rec = recording_folder()  # mmpa experiment --record
     jobs: list = [({"run": k}, dropout_job, (cfg_json, k, ml, rec)) for k in range(n)]

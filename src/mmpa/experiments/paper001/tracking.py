@@ -20,6 +20,7 @@ from pydantic import BaseModel, Field
 from mmpa.backends.twin.error_model import ErrorModelConfig
 from mmpa.experiments.paper001.grasp import Config as GraspExperimentConfig
 from mmpa.experiments.paper001.grasp import grasp_trial, recorded, run_jobs, twin_for
+from mmpa.harness.recording import recording_folder
 from mmpa.harness.runner import Context, Outcome, markdown_table
 from mmpa.servo.grasp import GraspConfig
 
@@ -81,7 +82,6 @@ def tracking_job(
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
-    from mmpa.harness.recording import recording_folder
 
     n = cfg.n_trials()
     cfg_json = cfg.model_dump_json()

@@ -31,6 +31,7 @@ from mmpa.backends.twin.error_model import ErrorModelConfig
 from mmpa.backends.twin.moving_base import KinematicMovingBase, MovingBaseNoise
 from mmpa.backends.twin.world import SimWorld
 from mmpa.fiducial_search import SearchConfig, make_strategy, run_pass
+from mmpa.harness.recording import recording_folder, trial_recorder
 from mmpa.harness.runner import Context, Outcome, markdown_table, run_trials, stats
 
 PAPER = "paper 002 Fig. 4 (fiducials intercepted and search time vs base speed, simulation)"
@@ -204,8 +205,6 @@ def pass_job(
     with ExitStack() as stack:
         on_state = None
         if record is not None:  # the same pass, observed
-            from mmpa.harness.recording import trial_recorder
-
             label = {"study": study, "strategy": strategy, "speed_cm_s": v_cm}
             rec = stack.enter_context(trial_recorder(record, label, "0", rep, world))
             on_state = rec.on_kinematic
@@ -231,7 +230,6 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             for v in cfg.tilt_speeds_cm_s
             for r in range(reps)
         ]
-    from mmpa.harness.recording import recording_folder
 
     cfg_json = cfg.model_dump_json()
     rec = recording_folder()  # mmpa experiment --record
