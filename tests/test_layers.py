@@ -209,5 +209,5 @@ def test_the_checker_sees_a_planted_upward_import(tmp_path: Path) -> None:
         "mmpa.core.geometry": ["mmpa.backends.twin", "mmpa.backends.twin.world"]
     }
     planted.write_text("def f():\n    import mmpa.robot.kinematics\n")
-    assert ["mmpa.core.geometry", "mmpa.robot.kinematics"] in cycles(modules)
+    assert any({"mmpa.core.geometry", "mmpa.robot.kinematics"} <= set(c) for c in cycles(modules))
     assert function_level_imports(modules)["mmpa.core.geometry"] == ["mmpa.robot.kinematics"]
