@@ -173,7 +173,7 @@ def yaml_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
     from mmpa.backends.twin.scene import load_scene
     from mmpa.core.config import load_config
     from mmpa.core.yamlio import load_yaml, load_yaml_text
-    from mmpa.maps.occupancy import load_map
+    from mmpa.maps.map_server import load_map
     from mmpa.maps.reflector_map import load_reflector_map
     from mmpa.robot.robot_file import load_robot
     from mmpa.tasks import read_bundle
@@ -259,7 +259,7 @@ MAP_DOC = {
 
 
 def map_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
-    from mmpa.maps.occupancy import load_map
+    from mmpa.maps.map_server import load_map
 
     d = tmp / "maps"
     d.mkdir()

@@ -439,7 +439,7 @@ def test_localize_cli_writes_the_run_folder(twin_recording, tmp_path) -> None:
     got = bag_topics(out / "estimate.mcap")
     assert got["/amcl_pose"] == ("geometry_msgs/msg/PoseWithCovarianceStamped", 4)
     # the same run on the map given as a map_server file: the same estimates
-    from mmpa.maps.occupancy import save_map
+    from mmpa.maps.map_server import save_map
 
     map_yaml = save_map(twin_recording["plain"][1], tmp_path / "map" / "map.yaml")
     out2 = tmp_path / "loc2"

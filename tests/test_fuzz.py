@@ -172,7 +172,7 @@ MAP_KEYS = [
     st.booleans(),
 )
 def test_map_loader_never_escapes(tmp_path_factory, doc: dict, pixels: bytes, good_image) -> None:
-    from mmpa.maps.occupancy import load_map
+    from mmpa.maps.map_server import load_map
 
     d = tmp_path_factory.mktemp("map")
     if good_image:  # a valid 4 x 4 PGM so that the YAML fields get exercised

@@ -18,7 +18,7 @@ from test_tasks import assert_same_task, make_task
 def test_deeply_nested_yaml_is_a_config_error_not_a_recursion_error(tmp_path: Path) -> None:
     """Audit: ``[`` * 5000 + ``]`` * 5000 raised RecursionError from PyYAML in every reader."""
     from mmpa.core.yamlio import load_yaml, load_yaml_text
-    from mmpa.maps.occupancy import load_map
+    from mmpa.maps.map_server import load_map
 
     text = "[" * 5000 + "]" * 5000
     with pytest.raises(ConfigError, match=r"deep: YAML nested too deeply"):

@@ -11,16 +11,8 @@ import yaml
 from PIL import Image
 
 from mmpa.core.errors import ConfigError, InvalidInputError
-from mmpa.maps.occupancy import (
-    Box2D,
-    OccupancyGrid,
-    load_map,
-    rasterize,
-    read_map_image,
-    read_pgm_maxval,
-    save_map,
-    write_pgm,
-)
+from mmpa.maps.map_server import load_map, read_map_image, read_pgm_maxval, save_map, write_pgm
+from mmpa.maps.occupancy import Box2D, OccupancyGrid, rasterize
 
 
 def _grid() -> OccupancyGrid:

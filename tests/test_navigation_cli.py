@@ -7,7 +7,7 @@ import json
 from typer.testing import CliRunner
 
 from mmpa.cli.main import app
-from mmpa.maps.occupancy import load_map
+from mmpa.maps.map_server import load_map
 
 runner = CliRunner()
 

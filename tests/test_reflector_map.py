@@ -10,7 +10,8 @@ import pytest
 import yaml
 
 from mmpa.core.errors import ConfigError, InvalidInputError
-from mmpa.maps.occupancy import OccupancyGrid, load_map, save_map, write_pgm
+from mmpa.maps.map_server import load_map, save_map, write_pgm
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.maps.reflector_map import (
     ReflectorMap,
     load_reflector_map,

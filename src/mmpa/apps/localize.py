@@ -35,7 +35,8 @@ from mmpa.core.errors import ConfigError, InvalidInputError
 from mmpa.core.geometry import Array, T_to_se2, inv, se2_to_T, wrap_angle
 from mmpa.localization.health import Health
 from mmpa.localization.localizer import make_localizer
-from mmpa.maps.occupancy import OccupancyGrid, load_map
+from mmpa.maps.map_server import load_map
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.maps.reflector_map import load_reflector_map
 
 if TYPE_CHECKING:  # pragma: no cover

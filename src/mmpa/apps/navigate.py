@@ -20,7 +20,8 @@ from mmpa.backends.twin.world import SimWorld
 from mmpa.core.config import load_config
 from mmpa.core.errors import ConfigError
 from mmpa.harness.twin_localization import twin_localizer
-from mmpa.maps.occupancy import OccupancyGrid, save_map
+from mmpa.maps.map_server import save_map
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.maps.reflector_map import load_reflector_map
 from mmpa.missions.navigate import NavigateConfig, NavigationResult, navigate
 from mmpa.navigation.planner import CostMap

@@ -7,7 +7,8 @@ Build a localizer with :func:`mmpa.localization.localizer.make_localizer` (metho
 from mmpa.localization.amcl import AMCL, AMCLConfig, PoseEstimate
 from mmpa.localization.enhanced import EnhancedAMCL, EnhancedConfig
 from mmpa.localization.localizer import METHODS, Localizer, make_localizer
-from mmpa.maps.occupancy import OccupancyGrid, load_map, save_map
+from mmpa.maps.map_server import load_map, save_map
+from mmpa.maps.occupancy import OccupancyGrid
 
 __all__ = [
     "AMCL",

@@ -10,7 +10,7 @@ File format (YAML, read through :func:`mmpa.core.yamlio.load_yaml`)::
 ``id``: an integer, unique in the file; ``x``, ``y``: the reflector's axis (m, ``map`` frame);
 ``radius``: the cylinder's radius (m, > 0). At least one reflector; no two closer than
 :data:`MIN_SEPARATION`. The same entry format may be embedded in (or referenced by) a
-``map_server`` map YAML's ``reflectors`` key (:func:`mmpa.maps.occupancy.load_map`).
+``map_server`` map YAML's ``reflectors`` key (:func:`mmpa.maps.map_server.load_map`).
 """
 
 from __future__ import annotations
