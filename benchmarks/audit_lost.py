@@ -120,6 +120,7 @@ def record_drive(start: str, to: str, seed: int) -> Recording:
             goal,
             NavigateConfig(timeout=60.0),
             costmap=CostMap(twin_nav_map(world)),
+            truth=world.truth.base_pose2d,
         )
         return Recording(
             np.array(rec["odom"]),

@@ -51,7 +51,9 @@ def drive(seed: int, start: str, to: str, profile: str) -> dict:
         loc = make_localizer("enhanced", grid, laser_pose2d(world), np.random.default_rng(seed))
         loc.initialize(rough_initial_pose(world))
         cm = CostMap(twin_nav_map(world))
-        res = navigate(world, loc, grid, goal, NavigateConfig(), costmap=cm)
+        res = navigate(
+            world, loc, grid, goal, NavigateConfig(), costmap=cm, truth=world.truth.base_pose2d
+        )
     e = res.localization_error
     return {
         "seed": seed,

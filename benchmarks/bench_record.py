@@ -97,7 +97,7 @@ def one_run(bag: Path | None, view: bool = False) -> tuple[float, tuple, dict[st
             rec.write_map(grid)
             loc = rec.localizer(loc)
         loc.initialize(rough_initial_pose(world))
-        res = navigate(w, loc, grid, goal, cfg, costmap=costmap)
+        res = navigate(w, loc, grid, goal, cfg, costmap=costmap, truth=world.truth.base_pose2d)
         w.arm.move_joints(np.asarray(world.nominal.arm.view_bench))
         for _ in range(CAPTURES):
             w.camera.capture()

@@ -264,7 +264,15 @@ def test_no_false_alarm_on_a_twin_drive() -> None:
         loc.initialize(rough_initial_pose(world))
         cm = CostMap(twin_nav_map(world))
         goal = world.scene.site("2").pose2d
-        res = navigate(world, loc, grid, goal, NavigateConfig(timeout=60.0), costmap=cm)
+        res = navigate(
+            world,
+            loc,
+            grid,
+            goal,
+            NavigateConfig(timeout=60.0),
+            costmap=cm,
+            truth=world.truth.base_pose2d,
+        )
     assert res.reached
     good = [ok for ok, err in rec if err < 0.2]
     assert len(good) > 150 and all(good)

@@ -143,7 +143,13 @@ def test_navigate_on_the_estimate_parks_at_the_site(profile: str, loc_tol: float
         goal = world.scene.site("2").pose2d
         cm = CostMap(twin_nav_map(world))
         res = navigate(
-            world, loc, grid, goal, NavigateConfig(scan_rate=5.0, timeout=60.0), costmap=cm
+            world,
+            loc,
+            grid,
+            goal,
+            NavigateConfig(scan_rate=5.0, timeout=60.0),
+            costmap=cm,
+            truth=world.truth.base_pose2d,
         )
     assert res.reached, res.reason
     assert res.reason == "" and res.settle_error_xy <= 1.5 * 0.003
@@ -223,7 +229,7 @@ def test_navigate_is_not_reached_when_corrections_run_out_out_of_tolerance() -> 
     cfg = NavigateConfig(initial_scans=0, settle_scans=2, max_corrections=1, timeout=60.0)
     world = _FakeWorld(np.array([0.0, 0.0, 0.0]))
     goal = np.array([0.6, 0.0, 0.0])
-    res = navigate(world, _JumpyLocalizer(), grid, goal, cfg)  # type: ignore[arg-type]
+    res = navigate(world, _JumpyLocalizer(), grid, goal, cfg, truth=world.truth.base_pose2d)  # type: ignore[arg-type]
     assert not res.reached
     # the same loop with an honest localizer reaches the goal (the fake world is sound)
     world = _FakeWorld(np.array([0.0, 0.0, 0.0]))
@@ -232,7 +238,7 @@ def test_navigate_is_not_reached_when_corrections_run_out_out_of_tolerance() -> 
         def update(self, odom_pose, scan, force=False):
             pass
 
-    res = navigate(world, _Odom(), grid, goal, cfg)  # type: ignore[arg-type]
+    res = navigate(world, _Odom(), grid, goal, cfg, truth=world.truth.base_pose2d)  # type: ignore[arg-type]
     assert res.reached and res.parking_error_xy < 0.01
 
 

@@ -205,6 +205,7 @@ def run_demo(
                 nav_cfg,
                 progress=progress,
                 costmap=CostMap(twin_nav_map(world), nav_cfg.planner),
+                truth=world.truth.base_pose2d,
             )
             done = res.reached
             path = list(res.trace["truth"]) or [start]

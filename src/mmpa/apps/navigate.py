@@ -107,7 +107,15 @@ def navigate_twin(
             loc = recorder.localizer(loc)
         loc.initialize(rough_initial_pose(world))  # the operator's rough pose
         cm = CostMap(twin_nav_map(world))
-        res = navigate(robot, loc, grid, goal, NavigateConfig(timeout=timeout), costmap=cm)
+        res = navigate(
+            robot,
+            loc,
+            grid,
+            goal,
+            NavigateConfig(timeout=timeout),
+            costmap=cm,
+            truth=world.truth.base_pose2d,
+        )
     summary = _summary(res, start, to, method, errors.profile)
     if reflector_map is not None:
         summary["reflector_map"] = str(reflector_map)

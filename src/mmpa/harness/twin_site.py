@@ -350,7 +350,9 @@ class TwinSite:
         loc = self._recorded(loc, grid)
         loc.initialize(rough_initial_pose(w, self._loc_rng()))  # the operator's rough pose
         goal = w.scene.site(self.site).pose2d
-        res = navigate(w, loc, grid, goal, NavigateConfig(), costmap=costmap)
+        res = navigate(
+            w, loc, grid, goal, NavigateConfig(), costmap=costmap, truth=w.truth.base_pose2d
+        )
         w.base.stop()
         w.step(0.5)
         est = res.trace["estimate"][-1] if len(res.trace["estimate"]) else goal
@@ -450,7 +452,7 @@ class TwinSite:
         for target, pos_tol, yaw_tol in legs:
             final = f.final.model_copy(update={"pos_tol": pos_tol, "yaw_tol": yaw_tol})
             cfg = nav.model_copy(update={"follower": f.model_copy(update={"final": final})})
-            res = navigate(w, loc, grid, target, cfg, costmap=costmap)
+            res = navigate(w, loc, grid, target, cfg, costmap=costmap, truth=w.truth.base_pose2d)
         assert res is not None
         w.base.stop()
         w.step(0.5)

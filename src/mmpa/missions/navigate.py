@@ -60,15 +60,6 @@ class MobileRobot(Protocol):
     def step(self, duration: float) -> None: ...
 
 
-def _truth_source(robot: Any, truth: Callable[[], Array] | None) -> Callable[[], Array] | None:
-    """The evaluation's ground truth: ``truth``, else the twin's (an object with
-    ``truth.base_pose2d``), else none. Never used to steer."""
-    if truth is not None:
-        return truth
-    gt = getattr(robot, "truth", None)
-    return None if gt is None else gt.base_pose2d
-
-
 def localize_standing(
     world: MobileRobot, localizer: Localizer, scans: int = 5, scan_rate: float = 10.0
 ) -> Array:
@@ -211,11 +202,11 @@ def navigate(
     pursuit, final approach with position and heading tolerances, settle and re-check (up to
     ``max_corrections`` times); it steers only on ``localizer.pose_at(odometry)``.
     ``on_tick(world, t)`` runs every control tick (e.g. to move occluders); the localizer must
-    already be initialized (rough initial pose). ``truth()`` (default: the twin's ground truth
-    when ``world`` has one) is read only for the evaluation trace and ``final_truth`` (NaN
-    without a truth).
+    already be initialized (rough initial pose). ``truth()`` (the twin's ground truth, given by
+    the evaluation; None on a real robot) is read only for the evaluation trace and
+    ``final_truth`` (NaN without a truth).
     """
-    truth_pose = _truth_source(world, truth)
+    truth_pose = truth
     no_truth = np.full(3, np.nan)
     cfg = cfg or NavigateConfig()
     goal = np.asarray(goal, float).reshape(3)

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -39,13 +39,12 @@ from mmpa.calibration.reflector_survey import (
 )
 from mmpa.core.errors import InvalidInputError, MMPAError
 from mmpa.core.geometry import Array
+from mmpa.localization.localizer import Localizer
 from mmpa.localization.reflectors import DetectionConfig, detect_reflectors
-from mmpa.missions.navigate import NavigateConfig, navigate
+from mmpa.maps.occupancy import OccupancyGrid
+from mmpa.missions.navigate import MobileRobot, NavigateConfig, navigate
 from mmpa.navigation.follower import FollowerConfig
-from mmpa.navigation.planner import plan_path
-
-if TYPE_CHECKING:  # pragma: no cover
-    from mmpa.missions.navigate import NavigateConfig
+from mmpa.navigation.planner import CostMap, plan_path
 
 __all__ = ["SurveyDrive", "SurveyDriveConfig", "survey_drive", "survey_stations"]
 
@@ -142,14 +141,14 @@ def _stop_navigation(leg_timeout: float) -> NavigateConfig:
 
 
 def survey_drive(
-    robot: Any,
-    localizer: Any,
-    grid: Any,
+    robot: MobileRobot,
+    localizer: Localizer,
+    grid: OccupancyGrid,
     laser_pose: Array,
     stations: list[Array],
     cfg: SurveyDriveConfig | None = None,
     *,
-    costmap: Any = None,
+    costmap: CostMap | None = None,
     truth: Callable[[], Array] | None = None,
     log: Callable[[str], None] | None = None,
 ) -> SurveyDrive:

@@ -204,6 +204,7 @@ def _trial(
             goal,
             cfg.navigate,
             costmap=CostMap(twin_nav_map(world, cfg.resolution)),
+            truth=world.truth.base_pose2d,
         )
         wall = time.perf_counter() - t0
     e = res.localization_error

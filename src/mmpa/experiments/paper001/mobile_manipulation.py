@@ -283,14 +283,18 @@ def mm_trial(
             entry[2] = float(np.arctan2(d[1], d[0]))
         else:
             entry[2] = cfg.entry_heading
-        r1 = navigate(world, loc, grid, entry, cfg.navigate, costmap=costmap)
+        r1 = navigate(
+            world, loc, grid, entry, cfg.navigate, costmap=costmap, truth=world.truth.base_pose2d
+        )
         found, t_search = search_desk(world, loc, cfg)
         aligned = (
             turn_to_heading(world, loc, float(park[2]), cfg.align_tol, cfg.align_timeout)[0]
             if cfg.align_tol > 0
             else False
         )
-        r2 = navigate(world, loc, grid, park, cfg.navigate, costmap=costmap)
+        r2 = navigate(
+            world, loc, grid, park, cfg.navigate, costmap=costmap, truth=world.truth.base_pose2d
+        )
         e = r2.localization_error
         loc_err = float(np.hypot(e[0], e[1]))
         nav_ok = bool(loc_err < cfg.success_threshold and r2.parking_error_xy < cfg.arrive_tol)
