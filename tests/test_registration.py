@@ -15,7 +15,8 @@ from mmpa.registration import (
     prepare,
     register,
 )
-from mmpa.registration.pipeline import _color_gradients, fgr_correspondences
+from mmpa.registration.checks import _color_gradients
+from mmpa.registration.fgr import fgr_correspondences
 from mmpa.robot.interfaces import PointCloud
 
 CFG = RegistrationConfig(presample=1)
@@ -86,7 +87,7 @@ def _check(r: Registration, T: np.ndarray, et: float = 1.5e-3, er: float = 0.004
 
 def test_recovers_known_transform_colored() -> None:
     src, tgt = _pair(T_TRUE)
-    paper = CFG.model_copy(update={"color_mode": "paper"})
+    paper = RegistrationConfig.paper(presample=1)
     r = register(src, tgt, paper)
     _check(r, T_TRUE)
     assert r.stages["method"] == "colored_icp"
@@ -320,7 +321,7 @@ def test_outlier_filter_and_normals_match_open3d() -> None:
     flying points."""
     import open3d as o3d
 
-    from mmpa.registration.pipeline import _clean_and_normals
+    from mmpa.registration.preprocess import _clean_and_normals
 
     rng = np.random.default_rng(6)
     pts = _scene(rng, 60000)
@@ -346,7 +347,7 @@ def test_outlier_filter_and_normals_match_open3d() -> None:
 def test_smallest_eigenvector_matches_eigh() -> None:
     """The closed-form smallest eigenvector against LAPACK's on random covariances, including
     nearly planar (rank-2) ones as on a surface, and a degenerate all-zero matrix."""
-    from mmpa.registration.pipeline import _smallest_eigenvector
+    from mmpa.registration.preprocess import _smallest_eigenvector
 
     rng = np.random.default_rng(8)
     X = rng.normal(size=(500, 12, 3)) * np.array([0.01, 0.008, 0.0])  # planar neighbourhoods
@@ -371,7 +372,7 @@ def test_smallest_eigenvector_matches_eigh() -> None:
 
 def _coarse_pair() -> tuple:
     """The coarse clouds of a prepared bench pair and their FGR correspondences."""
-    from mmpa.registration.pipeline import _feature_matrix
+    from mmpa.registration.preprocess import feature_matrix as _feature_matrix
 
     src, tgt = _pair(T_TRUE, seed=2)
     P, Q = prepare(src, CFG), prepare(tgt, CFG)
@@ -435,7 +436,7 @@ def test_fine_normals_only_on_use_and_equal_to_the_one_search() -> None:
     only when the cloud is used as an ICP target, equal to :func:`_clean_and_normals`."""
     import open3d as o3d
 
-    from mmpa.registration.pipeline import _clean_and_normals
+    from mmpa.registration.preprocess import _clean_and_normals
 
     src, _ = _pair(T_TRUE)
     P = prepare(src, CFG)
@@ -465,7 +466,7 @@ def test_open3d_thread_cap_is_restored_and_changes_nothing() -> None:
 
 
 def test_color_correlation_matches_numpy_and_ignores_gain_and_offset() -> None:
-    from mmpa.registration.pipeline import color_correlation
+    from mmpa.registration.checks import color_correlation
 
     rng = np.random.default_rng(4)
     a = rng.random((500, 3))
@@ -480,7 +481,7 @@ def test_color_correlation_matches_numpy_and_ignores_gain_and_offset() -> None:
 
 
 def test_color_correlation_given_the_position_ignores_a_lighting_gradient() -> None:
-    from mmpa.registration.pipeline import color_correlation
+    from mmpa.registration.checks import color_correlation
 
     rng = np.random.default_rng(5)
     p = rng.uniform([-0.4, -0.3, 0.6], [0.4, 0.3, 1.2], (800, 3))  # m
@@ -540,7 +541,7 @@ def test_fine_motion_gate_lets_the_feature_matches_vote(monkeypatch) -> None:
 
 
 def test_feature_support_counts_matches_within_the_radius() -> None:
-    from mmpa.registration.pipeline import _feature_support
+    from mmpa.registration.fgr import feature_support as _feature_support
 
     rng = np.random.default_rng(3)
     ps, pt = rng.normal(size=(50, 3)), rng.normal(size=(60, 3))

@@ -23,7 +23,7 @@ from mmpa.registration import (
     refine_projective,
     register,
 )
-from mmpa.registration.pipeline import rmse_gate
+from mmpa.registration.checks import rmse_gate
 from mmpa.robot.description import CameraIntrinsics
 from mmpa.robot.interfaces import PointCloud
 

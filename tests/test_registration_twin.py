@@ -89,7 +89,7 @@ def test_global_registration_under_realistic_errors(twin_realistic: TwinPairs, n
 
 def test_paper_colored_icp_matches_truth(twin: TwinPairs) -> None:
     """The paper's colored ICP (color_mode="paper") on the same pair."""
-    cfg = RegistrationConfig(color_mode="paper")
+    cfg = RegistrationConfig.paper()
     r = register(twin.taught, twin.current["park_a"], cfg)
     assert r.ok, r.reason
     assert r.stages["method"] == "colored_icp"

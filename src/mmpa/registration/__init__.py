@@ -3,26 +3,17 @@
 ``register(source, target, cfg, init=None) -> Registration`` estimates ``T_target_source``
 (``p_target = T p_source``); ``prepare`` preprocesses a cloud once for reuse. See
 :mod:`mmpa.registration.pipeline` for the method and :class:`RegistrationConfig` for the
-parameters. ``refine_projective`` refines a close pose at full resolution against an organized
-depth image (:mod:`mmpa.registration.projective`).
+parameters (:meth:`RegistrationConfig.paper`: the paper's own settings). ``refine_projective``
+refines a close pose at full resolution against an organized depth image
+(:mod:`mmpa.registration.projective`).
 """
 
-from mmpa.registration.config import IcpScale, RegistrationConfig
-from mmpa.registration.pipeline import (
-    Prepared,
-    Registration,
-    information_matrix,
-    prepare,
-    register,
-)
-from mmpa.registration.projective import (
-    ProjectiveConfig,
-    ProjectiveResult,
-    normal_map,
-    refine_projective,
-    robust_weights,
-    vertex_map,
-)
+from mmpa.registration.checks import information_matrix
+from mmpa.registration.config import IcpScale, ProjectiveConfig, RegistrationConfig
+from mmpa.registration.pipeline import Registration, register
+from mmpa.registration.preprocess import Prepared, prepare
+from mmpa.registration.projective import ProjectiveResult, refine_projective
+from mmpa.registration.projective_maps import normal_map, robust_weights, vertex_map
 
 __all__ = [
     "IcpScale",

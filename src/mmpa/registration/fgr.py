@@ -19,17 +19,25 @@ Open3D). ``mu`` starts at ``D`` (Open3D passes the scale as the starting ``mu``)
 every 4 iterations while it exceeds ``maximum_correspondence_distance`` (graduated
 non-convexity; Open3D compares the normalised ``mu`` with that distance in metres, and so
 does this module). The result is returned as ``T_target_source`` (the inverse).
+
+Its correspondences (:func:`fgr_correspondences`): mutual nearest FPFH neighbours and the
+tuple test, vectorized (one matrix product instead of Open3D's k-d tree in 33 dimensions,
+~2x faster); :func:`feature_support` counts the matches a pose keeps together (the fine
+stage's motion gate).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy.linalg.lapack import dgesv as _gesv
+from scipy.spatial.distance import cdist
 
 from mmpa.core.geometry import Array
 from mmpa.registration._blas import single_threaded_blas
 
-__all__ = ["fgr_solve"]
+__all__ = ["feature_support", "fgr_correspondences", "fgr_solve"]
 
 
 #: update (rad, normalised length) below which the line-process iteration has converged
@@ -154,3 +162,73 @@ def _fgr_solve(
     T[:3, :3] = R.T
     T[:3, 3] = mu_t - R.T @ (scale * t + mu_s)
     return T
+
+
+def fgr_correspondences(
+    f_src: Array,
+    f_tgt: Array,
+    p_src: Array,
+    p_tgt: Array,
+    max_tuples: int,
+    tuple_scale: float,
+    rng: np.random.Generator,
+) -> Array:
+    """Correspondences of Fast Global Registration (Zhou et al. 2016, §3 "initial
+    correspondences" and the tuple test), vectorized.
+
+    ``f_src`` (N, d), ``f_tgt`` (M, d) descriptors of the points ``p_src`` (N, 3) and
+    ``p_tgt`` (M, 3). Mutual nearest neighbours in descriptor space, with the squared
+    distances ``|a_i|^2 - 2 a_i . b_j + |b_j|^2`` from one matrix product: pairs ``(i, j)``
+    with ``j = argmin_j' |a_i - b_j'|`` and ``i = argmin_i' |a_i' - b_j|``. Tuple test: of
+    up to ``100 K`` random triples of the ``K`` mutual pairs (drawn from ``rng``), keep those
+    whose three edge lengths agree, ``tuple_scale < l_tgt / l_src < 1 / tuple_scale`` for
+    every edge, until ``max_tuples`` triples pass. Returns the (3 T, 2) int32 index pairs
+    ``(source, target)`` of the ``T`` accepted triples (the input of Open3D's
+    ``registration_fgr_based_on_correspondence`` without its own tuple test).
+    """
+    a = np.asarray(f_src, np.float32)
+    b = np.asarray(f_tgt, np.float32)
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((0, 2), np.int32)
+    # row-wise argmins of contiguous matrices (a column-wise argmin is ~15x slower)
+    with single_threaded_blas():
+        j_of_i = ((b * b).sum(axis=1)[None, :] - 2.0 * (a @ b.T)).argmin(axis=1)
+        i_of_j = ((a * a).sum(axis=1)[None, :] - 2.0 * (b @ a.T)).argmin(axis=1)
+    i = np.flatnonzero(i_of_j[j_of_i] == np.arange(len(a)))
+    pairs = np.stack([i, j_of_i[i]], axis=1)
+    k = len(pairs)
+    if k < 3:
+        return np.zeros((0, 2), np.int32)
+    ps, pt = np.asarray(p_src, float)[pairs[:, 0]], np.asarray(p_tgt, float)[pairs[:, 1]]
+    # edge lengths between all mutual pairs, flattened for the lookups
+    d_s = cdist(ps, ps).astype(np.float32).ravel()
+    d_t = cdist(pt, pt).astype(np.float32).ravel()
+    found: list[Array] = []
+    n_found, trials, batch = 0, 100 * k, 20000
+    for start in range(0, trials, batch):
+        r = rng.integers(0, k, (min(batch, trials - start), 3))
+        ok = np.ones(len(r), bool)
+        for e0, e1 in ((0, 1), (1, 2), (2, 0)):
+            e = r[:, e0] * k + r[:, e1]
+            ls, lt = d_s[e], d_t[e]
+            ok &= (ls * tuple_scale < lt) & (lt * tuple_scale < ls)
+        sel = r[ok][: max_tuples - n_found]
+        found.append(sel)
+        n_found += len(sel)
+        if n_found >= max_tuples:
+            break
+    return pairs[np.concatenate(found).reshape(-1)].astype(np.int32)
+
+
+def feature_support(src: Array, tgt: Array, corr: Array, radius: float) -> Callable[[Array], int]:
+    """``support(T)``: how many of the feature correspondences ``corr`` (K, 2) between the
+    coarse points ``src`` (N, 3) and ``tgt`` (M, 3) a pose ``T`` (4, 4) maps within
+    ``radius`` (m) of each other, ``|R p_s + t - p_t| < radius``."""
+    c = np.asarray(corr, dtype=np.int64).reshape(-1, 2)
+    ps, pt = src[c[:, 0]], tgt[c[:, 1]]
+
+    def support(T: Array) -> int:
+        d = ps @ T[:3, :3].T + T[:3, 3] - pt
+        return int(np.count_nonzero(np.einsum("ij,ij->i", d, d) < radius * radius))
+
+    return support
