@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from mmpa.harness.twin_site import TIMING_COLUMNS
+from mmpa.harness.twin_trials import TIMING_COLUMNS
 
 TARGET_SPEEDUP = 1.6
 VARYING = TIMING_COLUMNS

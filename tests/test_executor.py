@@ -12,7 +12,7 @@ import pytest
 
 from mmpa.core.errors import ConfigError, MMPAError
 from mmpa.harness import executor as ex
-from mmpa.harness.twin_site import TIMING_COLUMNS
+from mmpa.harness.twin_trials import TIMING_COLUMNS
 
 # ---------------------------------------------------------------------------------------
 # the executors on toy jobs (no simulator)
@@ -165,7 +165,7 @@ def serial_run(tmp_path_factory):
 def test_a_trial_alone_gives_its_row_of_the_full_run(serial_run):
     from mmpa.experiments.paper000 import ipe as mmpa_ipe
     from mmpa.harness.runner import _jsonable
-    from mmpa.harness.twin_site import TrialGroup, run_trial_groups
+    from mmpa.harness.twin_trials import TrialGroup, run_trial_groups
 
     cfg = mmpa_ipe.Config(trials=2, sites=["1"], paper_method=False)
     # a fresh twin: taught anew, trial 1 only (nothing ran before it in that world)

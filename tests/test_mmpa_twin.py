@@ -14,7 +14,8 @@ from typer.testing import CliRunner
 
 from mmpa.backends.twin.error_model import ErrorModelConfig
 from mmpa.cli.main import app
-from mmpa.harness.twin_site import MMPAExperimentConfig, TwinSite, ipe_rows
+from mmpa.harness.twin_site import MMPAExperimentConfig, TwinSite
+from mmpa.harness.ipe_eval import ipe_rows
 from mmpa.robot.interfaces import PointCloud
 
 

@@ -35,7 +35,8 @@ def ipe_runs(tmp_path_factory):
 
 
 def test_every_trial_records_its_own_bag_and_the_rows_are_unchanged(ipe_runs) -> None:
-    from mmpa.harness.twin_site import TIMING_COLUMNS, trial_bag_name
+    from mmpa.harness.twin_site import trial_bag_name
+    from mmpa.harness.twin_trials import TIMING_COLUMNS
 
     rec, plain = ipe_runs["rec"], ipe_runs["plain"]
     assert [p.name for p in ipe_runs["bags"].iterdir()] == ["method-mmpa-site-1-trial-0.mcap"]
@@ -53,7 +54,8 @@ def test_every_trial_records_its_own_bag_and_the_rows_are_unchanged(ipe_runs) ->
 
 
 def test_the_trial_bag_holds_the_trial(ipe_runs) -> None:
-    from mmpa.harness.twin_site import MMPAExperimentConfig, pose_errors
+    from mmpa.harness.twin_site import MMPAExperimentConfig
+    from mmpa.harness.ipe_eval import pose_errors
     from mmpa.robot.description import default_robot
     from mmpa.tasks import read_bundle
 

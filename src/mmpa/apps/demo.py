@@ -31,14 +31,16 @@ from mmpa.backends.bag.record import ARM_RATE_HZ
 from mmpa.backends.twin.error_model import ErrorModelConfig
 from mmpa.backends.twin.operator import get_demonstration, rough_initial_pose
 from mmpa.backends.twin.scene import load_scene
-from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
+from mmpa.backends.twin.twin_maps import twin_map, twin_nav_map
 from mmpa.backends.twin.world import SimWorld
 from mmpa.core.config import save_config
 from mmpa.core.errors import MMPAError
 from mmpa.core.geometry import Array, T_to_vec6, apply, inv, se2_to_T, wrap_angle
 from mmpa.harness import plots
-from mmpa.harness.twin_site import MMPAExperimentConfig, key_error, pose_errors, teach_in_world
-from mmpa.localization.localizer import METHODS, make_localizer
+from mmpa.harness.ipe_eval import pose_errors
+from mmpa.harness.twin_localization import twin_localizer
+from mmpa.harness.twin_site import MMPAExperimentConfig, key_error, teach_in_world
+from mmpa.localization.localizer import METHODS
 from mmpa.missions.navigate import NavigateConfig, navigate
 from mmpa.missions.teach_repeat import automate, execute_joint_path
 from mmpa.navigation import GoToPoseConfig, go_to_pose_command
@@ -189,9 +191,8 @@ def run_demo(
             loc_err = None
         else:
             grid = twin_map(world)
-            loc = make_localizer(
-                cfg.localization, grid, laser_pose2d(world), np.random.default_rng(cfg.errors.seed)
-            )
+            rng = np.random.default_rng(cfg.errors.seed)
+            loc = twin_localizer(world, cfg.localization, rng, grid=grid)
             if recorder is not None:
                 recorder.write_map(grid)
                 loc = recorder.localizer(loc)

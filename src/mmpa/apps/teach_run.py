@@ -17,7 +17,8 @@ import numpy as np
 
 from mmpa.backends.bag.record import ARM_RATE_HZ
 from mmpa.core.geometry import T_to_vec6
-from mmpa.harness.twin_site import MMPAExperimentConfig, TwinSite, ipe_rows, offset_row
+from mmpa.harness.ipe_eval import ipe_rows, offset_row
+from mmpa.harness.twin_site import MMPAExperimentConfig, TwinSite
 from mmpa.tasks import TaskStore
 
 __all__ = ["RECORD_MIN_JOINT_HZ", "run_task", "teach_task"]

@@ -333,7 +333,7 @@ def _warm_up(module: str) -> int:
     return os.getpid()
 
 
-def prestart(kind: str, workers: int, module: str = "mmpa.harness.twin_site") -> None:
+def prestart(kind: str, workers: int, module: str = "mmpa.harness.twin_trials") -> None:
     """Start the local worker processes of ``--executor kind --workers N`` now, each
     importing ``module``, while this process goes on (e.g. importing the experiment): the
     :class:`ProcessExecutor` made next with ``workers`` takes them over. Nothing for Ray or

@@ -12,14 +12,10 @@ from typing import Literal
 import numpy as np
 
 from mmpa.experiments.paper000 import figures as paper000
+from mmpa.harness.ipe_eval import ipe_stats
 from mmpa.harness.runner import Context, Outcome, markdown_table
-from mmpa.harness.twin_site import (
-    PAPER_BETA,
-    MMPAExperimentConfig,
-    TrialGroup,
-    ipe_stats,
-    run_trial_groups,
-)
+from mmpa.harness.twin_site import PAPER_BETA, MMPAExperimentConfig
+from mmpa.harness.twin_trials import TrialGroup, run_trial_groups
 
 PARALLEL_TRIALS = True
 #: every trial can record itself to a bag of its own (``mmpa experiment --record DIR``)

@@ -9,14 +9,10 @@ from __future__ import annotations
 import numpy as np
 
 from mmpa.experiments.paper000 import figures as paper000
+from mmpa.harness.ipe_eval import ipe_stats
 from mmpa.harness.runner import Context, Outcome, markdown_table, stats, write_csv
-from mmpa.harness.twin_site import (
-    PAPER_BETA,
-    MMPAExperimentConfig,
-    TrialGroup,
-    ipe_stats,
-    run_trial_groups,
-)
+from mmpa.harness.twin_site import PAPER_BETA, MMPAExperimentConfig
+from mmpa.harness.twin_trials import TrialGroup, run_trial_groups
 from mmpa.missions.teach_repeat import AutomationConfig
 
 #: the runner may run this experiment's trials on an executor (``--workers``, ``--executor``)

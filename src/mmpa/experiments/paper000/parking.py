@@ -14,7 +14,8 @@ import numpy as np
 from mmpa.backends.twin.error_model import PARKING_TABLE2
 from mmpa.experiments.paper000 import figures as paper000
 from mmpa.harness.runner import Context, Outcome, markdown_table, stats
-from mmpa.harness.twin_site import MMPAExperimentConfig, TrialGroup, run_trial_groups
+from mmpa.harness.twin_site import MMPAExperimentConfig
+from mmpa.harness.twin_trials import TrialGroup, run_trial_groups
 
 PARALLEL_TRIALS = True
 #: every trial can record itself to a bag of its own (``mmpa experiment --record DIR``)

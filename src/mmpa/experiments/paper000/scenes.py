@@ -14,13 +14,10 @@ from pydantic import Field
 from mmpa.backends.twin.scene import DeskItem, SceneConfig, load_scene
 from mmpa.core.errors import UnknownNameError
 from mmpa.experiments.paper000 import figures as paper000
+from mmpa.harness.ipe_eval import ipe_stats
 from mmpa.harness.runner import Context, Outcome, markdown_table
-from mmpa.harness.twin_site import (
-    MMPAExperimentConfig,
-    TrialGroup,
-    ipe_stats,
-    run_trial_groups,
-)
+from mmpa.harness.twin_site import MMPAExperimentConfig
+from mmpa.harness.twin_trials import TrialGroup, run_trial_groups
 
 PARALLEL_TRIALS = True
 #: every trial can record itself to a bag of its own (``mmpa experiment --record DIR``)

@@ -36,9 +36,9 @@ from mmpa.backends.twin.world import SimWorld
 from mmpa.core.geometry import wrap_angle
 from mmpa.harness.recording import recording_folder, trial_recorder
 from mmpa.harness.runner import Context, Outcome, markdown_table, run_trials, stats
-from mmpa.harness.twin_localization import errors_follow_seed
+from mmpa.harness.twin_localization import errors_follow_seed, twin_localizer
 from mmpa.localization.amcl import AMCLConfig
-from mmpa.localization.localizer import METHODS, make_localizer
+from mmpa.localization.localizer import METHODS
 from mmpa.missions.navigate import NavigateConfig, navigate
 from mmpa.navigation.mount_calibration import MountCalibrationConfig, calibrate_lidar_mount
 from mmpa.navigation.planner import CostMap
@@ -186,8 +186,8 @@ def _trial(
         guess = rough_pose(start, rng, *initial_sigmas(cfg))  # the operator's rough pose
         world.reset(pose2d=start)
         grid = twin_map(world, cfg.resolution)
-        lp = laser_pose2d(world) if mount is None else mount
-        loc = make_localizer(method, grid, lp, np.random.default_rng([cfg.seed, k, 7]))
+        rng_k = np.random.default_rng([cfg.seed, k, 7])
+        loc = twin_localizer(world, method, rng_k, grid=grid, mount=mount)
         robot: Any = world
         if record is not None:  # the same trial, observed (mmpa.backends.bag.Recorder)
             label = {"method": method}
@@ -236,8 +236,8 @@ def _kidnap(cfg: Config, k: int, method: str, mount: np.ndarray | None = None) -
     with SimWorld(errors=cfg.errors, site=cfg.goal_site, episode=100 + k) as w:
         grid = twin_map(w, cfg.resolution)
         amcl = cfg.kidnap_amcl
-        lp = laser_pose2d(w) if mount is None else mount
-        loc = make_localizer(method, grid, lp, np.random.default_rng([cfg.seed, k, 9]), amcl=amcl)
+        rng_k = np.random.default_rng([cfg.seed, k, 9])
+        loc = twin_localizer(w, method, rng_k, grid=grid, mount=mount, amcl=amcl)
         guess_rng = np.random.default_rng([cfg.seed, k, 10])
         loc.initialize(rough_pose(w.truth.base_pose2d(), guess_rng, *initial_sigmas(cfg)))
         dt = 1.0 / cfg.navigate.scan_rate

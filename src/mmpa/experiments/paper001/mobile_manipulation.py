@@ -67,8 +67,8 @@ from mmpa.experiments.paper001.localization import corridor_start, initial_sigma
 from mmpa.harness.perception_data import DESK_PARK, _place_in_region, desk_frame, random_table_scene
 from mmpa.harness.recording import recording_folder, trial_recorder
 from mmpa.harness.runner import Context, Outcome, markdown_table, stats
-from mmpa.harness.twin_localization import errors_follow_seed
-from mmpa.localization.localizer import METHODS, make_localizer
+from mmpa.harness.twin_localization import errors_follow_seed, twin_localizer
+from mmpa.localization.localizer import METHODS
 from mmpa.missions.navigate import NavigateConfig, localize_standing, navigate
 from mmpa.navigation.planner import CostMap, plan_path
 from mmpa.perception import CLASSES
@@ -265,9 +265,7 @@ def mm_trial(
         world.step(0.3)
         grid = twin_map(world, cfg.resolution)
         costmap = CostMap(twin_nav_map(world, cfg.resolution))
-        loc = make_localizer(
-            cfg.method, grid, laser_pose2d(world), np.random.default_rng([cfg.seed, k, 7])
-        )
+        loc = twin_localizer(world, cfg.method, np.random.default_rng([cfg.seed, k, 7]), grid=grid)
         if rec is not None:
             rec.write_map(grid)
             loc = rec.localizer(loc)
