@@ -89,8 +89,9 @@ def test_desk_search_finds_the_legs_only_where_the_map_puts_them():
     from mmpa.backends.twin.twin_maps import laser_pose2d
     from mmpa.backends.twin.world import SimWorld
     from mmpa.core.geometry import se2_to_T
-    from mmpa.experiments.paper001.mobile_manipulation import desk_front_legs, desk_in_scan
+    from mmpa.experiments.paper001.mobile_manipulation import desk_front_legs
     from mmpa.harness.perception_data import DESK_PARK
+    from mmpa.missions.desk_search import desk_in_scan
 
     with SimWorld(site="0") as w:
         legs = desk_front_legs(w)
@@ -186,9 +187,9 @@ def test_turn_to_heading_aligns_the_true_base_on_the_estimate():
     from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
     from mmpa.backends.twin.world import SimWorld
     from mmpa.core.geometry import wrap_angle
-    from mmpa.experiments.paper001.mobile_manipulation import turn_to_heading
     from mmpa.harness.perception_data import DESK_PARK
     from mmpa.localization.localizer import make_localizer
+    from mmpa.missions.desk_search import turn_to_heading
 
     park = np.array(DESK_PARK)
     start = np.array([park[0], park[1] - 0.25, park[2] - 0.35])

@@ -18,7 +18,7 @@ One run (paper 001 §4.2.2, Fig. 15):
    them, from the current estimate: found when the desk's center is within +-``face_tol`` of
    the heading and both legs return ``leg_points`` points within ``leg_radius`` of their
    expected positions (the desk is there and the estimate agrees with it). Then it turns on
-   the spot to the grasp pose's heading (:func:`turn_to_heading`, on the estimate, to
+   the spot to the grasp pose's heading (:mod:`mmpa.missions.desk_search`, on the estimate, to
    ``align_tol``), still ``entry_back`` m from the grasp pose where the base has room to turn.
 5. **Approach and localize**: the final approach to the grasp pose in front of the desk,
    stopping, settling scans and re-checks with the reflectors (the high-precision localization
@@ -41,7 +41,6 @@ and the grasp success among runs with a detection.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -53,7 +52,7 @@ from mmpa.backends.twin.lidar_noise import rough_pose
 from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map, twin_nav_map
 from mmpa.backends.twin.world import SimWorld
 from mmpa.core.errors import UnknownNameError
-from mmpa.core.geometry import Array, inv, se2_to_T, wrap_angle
+from mmpa.core.geometry import Array, inv, se2_to_T
 from mmpa.experiments.paper001.grasp import (
     LOOK_HEIGHT,
     LOOK_TARGET,
@@ -68,7 +67,9 @@ from mmpa.harness.perception_data import DESK_PARK, _place_in_region, desk_frame
 from mmpa.harness.recording import recording_folder, trial_recorder
 from mmpa.harness.runner import Context, Outcome, markdown_table, stats
 from mmpa.harness.twin_localization import errors_follow_seed, twin_localizer
-from mmpa.localization.localizer import METHODS
+from mmpa.localization.localizer import METHODS, Localizer
+from mmpa.missions import desk_search
+from mmpa.missions.desk_search import turn_to_heading
 from mmpa.missions.navigate import NavigateConfig, localize_standing, navigate
 from mmpa.navigation.planner import CostMap, plan_path
 from mmpa.perception import CLASSES
@@ -149,84 +150,21 @@ def desk_front_legs(world: Any) -> Array:
     return local @ T[:2, :2].T + T[:2, 3]
 
 
-def desk_in_scan(
-    scan: Any, T_map_laser: Array, legs_map: Array, radius: float, min_points: int
-) -> bool:
-    """Both desk legs ``legs_map`` (2, 2) seen: at least ``min_points`` scan points (mapped
-    with ``T_map_laser`` (4, 4), the laser in the map) within ``radius`` m of each."""
-    r = np.asarray(scan.ranges, float)
-    a = scan.angle_min + scan.angle_increment * np.arange(len(r))
-    ok = np.isfinite(r) & (r > scan.range_min)
-    pts = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])])
-    pts_map = pts @ T_map_laser[:2, :2].T + T_map_laser[:2, 3]
-    for leg in legs_map:
-        if int(np.sum(np.linalg.norm(pts_map - leg, axis=1) < radius)) < min_points:
-            return False
-    return True
-
-
-def turn_on_the_spot(
-    world: Any,
-    localizer: Any,
-    rate: Callable[[Array, Any], float | None],
-    dt: float,
-    timeout: float,
-) -> tuple[bool, float]:
-    """Turn on the spot on the localization estimate: every ``dt`` s, scan into
-    ``localizer`` and command ``w = rate(estimate, scan)`` rad/s until ``rate`` returns None
-    (done) or ``timeout`` s pass; then stop and settle 0.3 s. Returns ``(done, seconds)``."""
-    t0 = world.time
-    done = False
-    while world.time - t0 < timeout:
-        odom = world.odometry.odometry().pose
-        scan = world.lidar.scan()
-        localizer.update(odom, scan, force=False)
-        w = rate(localizer.pose_at(odom), scan)
-        if w is None:
-            done = True
-            break
-        world.base.set_velocity(0.0, w)
-        world.step(dt)
-    world.base.stop()
-    world.step(0.3)
-    return done, float(world.time - t0)
-
-
-def search_desk(world: Any, localizer: Any, cfg: Config) -> tuple[bool, float]:
-    """Turn on the spot (toward the desk side first, on the estimate) until the desk's front
-    legs are in the scan (:func:`desk_in_scan`); returns ``(found, seconds)``."""
-
-    legs = desk_front_legs(world)
-    T_base_laser = se2_to_T(*laser_pose2d(world))
-    center = np.asarray(world.scene.grasp_desk.center, float)
-
-    def rate(est: Array, scan: Any) -> float | None:
-        off = float(wrap_angle(np.arctan2(*(center - est[:2])[::-1]) - est[2]))
-        T_map_laser = se2_to_T(*est) @ T_base_laser
-        if abs(off) <= cfg.face_tol and desk_in_scan(
-            scan, T_map_laser, legs, cfg.leg_radius, cfg.leg_points
-        ):
-            return None
-        return cfg.search_w * (1.0 if off >= 0 else -1.0)
-
-    return turn_on_the_spot(world, localizer, rate, 0.1, cfg.search_timeout)
-
-
-def turn_to_heading(
-    world: Any, localizer: Any, heading: float, tol: float, timeout: float
-) -> tuple[bool, float]:
-    """Turn on the spot until the ESTIMATED heading is within ``tol`` rad of ``heading``
-    (``w = clip(1.5 e, +-0.3)`` rad/s, at least 0.02 rad/s; scans into ``localizer`` every
-    0.05 s); returns ``(aligned, seconds)``."""
-
-    def rate(est: Array, scan: Any) -> float | None:
-        e = float(wrap_angle(heading - est[2]))
-        if abs(e) <= tol:
-            return None
-        w = float(np.clip(1.5 * e, -0.3, 0.3))
-        return w if abs(w) >= 0.02 else 0.02 * float(np.sign(e))
-
-    return turn_on_the_spot(world, localizer, rate, 0.05, timeout)
+def search_desk(world: SimWorld, localizer: Localizer, cfg: Config) -> tuple[bool, float]:
+    """Turn on the spot until the grasp desk's front legs (where the nominal scene puts them)
+    are in the scan (:func:`mmpa.missions.desk_search.search_desk`)."""
+    return desk_search.search_desk(
+        world,
+        localizer,
+        desk_front_legs(world),
+        world.scene.grasp_desk.center,
+        laser_pose2d(world),
+        cfg.face_tol,
+        cfg.leg_radius,
+        cfg.leg_points,
+        cfg.search_w,
+        cfg.search_timeout,
+    )
 
 
 def place_trial_objects(world: Any, rng: np.random.Generator, name: str, others: int) -> None:
