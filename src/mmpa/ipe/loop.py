@@ -1,14 +1,23 @@
 """The IPE loop of paper 000 Fig. 4, over the hardware-neutral Arm and Camera interfaces.
 
+Frames and equations (:mod:`mmpa.ipe.core`; m, rad): ``T_Bo_Co`` the camera in the arm base at
+teaching (eq. 1), ``T_Bk_Ck`` at the k-th view (eq. 2, nominal kinematics and hand-eye),
+``dT_C`` the registration of the taught cloud ``X_i(O)`` to the view's ``X_i(k)`` (eq. 3),
+``dT_B = T_Bk_Ck dT_C inv(T_Bo_Co)`` the parking offset (eq. 9-10), the next camera target
+``T_Bk_C* = dT_B T_Bo_Co`` (eq. 11).
+
 1. Set the sampling pose to the taught one (the taught joints ``q_sample``).
 2. Loop ``k = 1 .. beta``: if the sampling pose is unreachable, stop with False (the arm does
-   not move); move there, capture ``X_i(k)``, register the taught cloud ``X_i(O)`` to it
-   (``dT_C``, eq. 3), update ``dT_B`` (eq. 9-10); if ``dT_C`` is below ``alpha`` stop with True;
-   otherwise set the next sampling pose so that the camera returns to its taught pose in the
-   world (``T_Bk_C* = dT_B T_Bo_Co``) and go on. After ``beta`` registrations, stop with False.
+   not move); move there and capture ``X_i(k)`` (:meth:`IPE._capture_view`), register the
+   taught cloud to it (:meth:`IPE._register_view`, :meth:`IPE._refine_view`), update
+   ``dT_B``; if ``dT_C`` is below ``alpha`` stop with True (:meth:`IPE._converged_view`);
+   otherwise move the camera back to its taught pose in the world and go on. After ``beta``
+   registrations, stop with False.
 
 A failed registration (``ok=False``) or an implausible estimate stops IPE with False and a
-reason; the arm never moves on a failed estimate.
+reason; the arm never moves on a failed estimate. Beyond the paper (:class:`IPEConfig`): a
+localization prior for the first view, a retreat when the first view fails, the projective
+and photometric refinements of every view, the 4 mm final registration, the witness view.
 """
 
 from __future__ import annotations
@@ -16,25 +25,26 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from mmpa.core.errors import InvalidInputError, UnreachableError
 from mmpa.core.geometry import Array, as_transform, inv, make_T
+from mmpa.ipe.config import (
+    FINAL_REFINEMENT,
+    PRIOR_SCALES,
+    IPEConfig,
+    IPEIteration,
+    IPEResult,
+)
 from mmpa.ipe.core import (
-    DEFAULT_ALPHA,
-    alpha_vector,
     camera_target,
     converged,
     delta_T_B,
     pose_difference,
 )
 from mmpa.registration import (
-    IcpScale,
     Prepared,
-    ProjectiveConfig,
     ProjectiveResult,
     Registration,
     RegistrationConfig,
@@ -48,21 +58,17 @@ from mmpa.robot.kinematics import fk, ik_nearest
 
 _log = logging.getLogger(__name__)
 
-__all__ = ["IPE", "IPEConfig", "IPEIteration", "IPEResult", "capture_cloud", "view_consistency"]
+__all__ = [
+    "FINAL_REFINEMENT",
+    "IPE",
+    "PRIOR_SCALES",
+    "IPEConfig",
+    "IPEIteration",
+    "IPEResult",
+    "capture_cloud",
+    "view_consistency",
+]
 
-
-#: the finer last registration: every 2nd pixel, 4 mm voxels, 15 colored-ICP iterations
-FINAL_REFINEMENT = RegistrationConfig(
-    presample=2, init_scales=(IcpScale(voxel=0.004, max_distance=0.006, max_iter=15),)
-)
-
-#: first registration from the localization prior: the 2D prior misses z, roll and pitch
-#: (terrain), so start coarse with a wide gate and accept a larger correction
-PRIOR_SCALES = (
-    IcpScale(voxel=0.02, max_distance=0.08, max_iter=15),
-    IcpScale(voxel=0.02, max_distance=0.04, max_iter=10),
-    IcpScale(voxel=0.01, max_distance=0.015, max_iter=10),
-)
 
 _PREPARED: list[tuple[PointCloud, tuple, Prepared]] = []
 
@@ -80,131 +86,6 @@ def prepared(cloud: PointCloud, cfg: RegistrationConfig) -> Prepared:
     _PREPARED.append((cloud, key, p))
     del _PREPARED[:-6]
     return p
-
-
-class IPEConfig(BaseModel):
-    """IPE parameters (paper 000 §4.3 defaults for alpha and beta)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    alpha: tuple[float, float, float, float, float, float] = DEFAULT_ALPHA  # m x3, rad x3
-    beta: int = Field(5, ge=1)  # the paper uses 10 at Site 2'
-    frames: int = Field(4, ge=1)  # captures averaged per view (paper: 1)
-    use_color: bool = True  # False: drop colors, point-to-plane ICP (paper Table A.7 A.0/B.0)
-    global_each_iteration: bool = False  # paper: True (FGR + colored ICP every time)
-    min_depth: float = Field(0.2, gt=0)  # m, crop of the captured cloud
-    max_depth: float = Field(1.5, gt=0)
-    # beyond the paper: views are approached at this fraction of the joint velocity and
-    # acceleration limits (None: as fast as the arm goes). A full-speed swing of the base joint
-    # shoved the parked base (reaction torque) by 5-10 cm at Site 2' in the twin.
-    move_speed: float | None = Field(0.3, gt=0, le=1)
-    retreat: float = Field(0.15, ge=0)  # m the camera backs off when the first view fails
-    prior_max_shift: float = Field(0.12, gt=0)  # m: correction accepted from the prior
-    prior_max_rotation: float = Field(np.deg2rad(12.0), gt=0)  # rad
-    max_translation: float = Field(1.0, gt=0)  # m: larger |dT_B| is implausible -> False
-    max_rotation: float = Field(np.deg2rad(60.0), gt=0)  # rad
-    registration: RegistrationConfig = RegistrationConfig()
-    # beyond the paper: once converged, a projective point-to-plane refinement of the last
-    # view at full resolution on its depth image (no voxel aliasing; estimates the relative
-    # depth scale too), starting from the converged dT_C; None: off
-    projective: ProjectiveConfig | None = ProjectiveConfig()
-    # when the projective refinement is off or refused (e.g. a textured plane: point-to-plane
-    # alone is degenerate there), one more colored registration at 4 mm voxels; None: off
-    final: RegistrationConfig | None = FINAL_REFINEMENT
-    # beyond the paper: a witness view (m sideways; None: off). Once converged, the camera
-    # moves this far along its x axis from the taught viewpoint (by the estimate), and the
-    # taught cloud is registered there too (ICP from the estimate's prediction, then the
-    # projective and photometric refinements of the converged view): the two estimates of
-    # the one parking offset must agree within ``witness_tolerance`` (m at the taught
-    # camera, rad; :func:`view_consistency`), else no estimate. Two views near the taught one
-    # are equivalent witnesses (the session's depth distortion cancels alike in both); a
-    # registration that slid into a wrong minimum does not repeat from another viewpoint.
-    # Costs an arm move, a capture and a registration (~0.1-0.2 s of compute).
-    witness: float | None = Field(None, gt=0)
-    witness_tolerance: tuple[float, float] = (0.002, float(np.deg2rad(0.3)))
-
-    @field_validator("alpha")
-    @classmethod
-    def _alpha(cls, v: tuple[float, ...]) -> tuple[float, ...]:
-        alpha_vector(v)
-        return v
-
-    @classmethod
-    def paper(cls, **changes: object) -> IPEConfig:
-        """The paper's own IPE settings (paper 000 §3.2, §4.3): one frame per view, global
-        registration (FGR + colored ICP) every iteration, colored ICP whenever both clouds
-        carry colour, no retreat, no projective or final refinement; ``changes`` on top
-        (e.g. ``beta=10`` at Site 2')."""
-        base = cls()
-        reg = base.registration.model_copy(update={"color_mode": "paper"})
-        fields = {
-            "frames": 1,
-            "global_each_iteration": True,
-            "retreat": 0.0,
-            "projective": None,
-            "final": None,
-            "registration": reg,
-        }
-        return cls.model_validate({**base.model_dump(), **fields, **changes})
-
-
-@dataclass(frozen=True)
-class IPEIteration:
-    """One pass of the loop: the joints the camera sampled at, the nominal ``T_Bk_Ck``, the
-    registration (``dT_C`` = ``registration.T``), the updated ``dT_B`` and timings (s)."""
-
-    k: int
-    q: Array
-    T_Bk_Ck: Array
-    registration: Registration
-    dT_B: Array | None
-    difference: Array  # |[tx, ty, tz, r, p, y]| of dT_C (m, rad)
-    seconds_move: float
-    seconds_capture: float
-    seconds_register: float
-    # the projective refinement of this view (when on and the registration succeeded); when
-    # ok, ``dT_B`` and ``difference`` come from it instead of ``registration.T``
-    projective: ProjectiveResult | None = None
-
-
-@dataclass
-class IPEResult:
-    """Outcome of IPE: ``ok`` (the execution flag of Fig. 4), ``dT_B`` (4x4; None on failure),
-    a ``reason`` when not ok, and every iteration."""
-
-    ok: bool
-    dT_B: Array | None
-    reason: str = ""
-    iterations: list[IPEIteration] = field(default_factory=list)
-    seconds_prepare: float = 0.0
-    final: Registration | None = None  # the 4 mm fallback refinement (when it ran)
-    # the full-resolution refinement of the converged view (depth + colour when on)
-    projective: ProjectiveResult | None = None
-    seconds_final: float = 0.0  # the converged view's photometric / 4 mm refinement
-    # the witness view (``IPEConfig.witness``): its estimate of dT_B, how far it lies from
-    # the result's ((m at the taught camera, rad); :func:`view_consistency`), its seconds
-    witness_dT_B: Array | None = None
-    witness_disagreement: tuple[float, float] | None = None
-    seconds_witness: float = 0.0
-
-    @property
-    def n_iterations(self) -> int:
-        return len(self.iterations)
-
-    @property
-    def seconds_compute(self) -> float:
-        """Registration and preparation time (excludes arm motion and capture)."""
-        return (
-            self.seconds_prepare
-            + self.seconds_final
-            + self.seconds_witness
-            + sum(it.seconds_register for it in self.iterations)
-        )
-
-    @property
-    def estimates(self) -> list[Array]:
-        """``dT_B`` after every iteration (Fig. 9)."""
-        return [it.dT_B for it in self.iterations if it.dT_B is not None]
 
 
 def capture_cloud(camera: Camera, frames: int, min_depth: float, max_depth: float) -> PointCloud:
@@ -349,12 +230,7 @@ class IPE:
         source = taught if isinstance(taught, Prepared) else prepared(taught, cfg.registration)
         result = IPEResult(ok=False, dT_B=None, seconds_prepare=time.perf_counter() - t0)
         lo, hi = self.robot.arm.q_limits
-        prior = None if dT_B_prior is None else as_transform(dT_B_prior, "dT_B_prior")
-        if prior is not None:
-            try:
-                q_next = self.camera_joints(camera_target(prior, T_Bo_Co), q_next)
-            except UnreachableError:
-                prior = None  # the taught joints, as in the paper
+        prior, q_next = self._first_view(dT_B_prior, T_Bo_Co, q_next)
         retreated = False
         src: tuple[Array, Array | None] | None = None  # taught points, colours in the crop
         for k in range(1, cfg.beta + 1):
@@ -363,116 +239,35 @@ class IPE:
             if not np.all((q_next >= lo) & (q_next <= hi)):  # False for a NaN too
                 result.reason = f"iteration {k}: the sampling pose is outside the joint limits"
                 return result
-            t1 = time.perf_counter()
-            arm.move_joints(q_next, self._move_duration(arm, q_next))
-            q = arm.joint_positions()
-            t2 = time.perf_counter()
-            frame, cloud = capture(camera, cfg.frames, cfg.min_depth, cfg.max_depth)
-            if not cfg.use_color:
-                cloud = PointCloud(cloud.points, None, cloud.frame)
-            t3 = time.perf_counter()
+            q, frame, cloud, times = self._capture_view(arm, camera, q_next)
             T_Bk_Ck = self.T_arm_base_camera(q)
-            # after the first view the camera is back near its taught pose: the previous
-            # estimate predicts dT_C (~ identity) and the fine stage starts there
-            init = None
-            guess = result.dT_B if result.dT_B is not None else prior
-            if guess is not None and not cfg.global_each_iteration:
-                init = inv(T_Bk_Ck) @ guess @ T_Bo_Co
-            if init is not None and result.dT_B is None:  # first view, from the prior
-                wide = cfg.registration.model_copy(
-                    update={
-                        "init_scales": PRIOR_SCALES,
-                        "max_init_shift": cfg.prior_max_shift,
-                        "max_init_rotation_deg": float(np.rad2deg(cfg.prior_max_rotation)),
-                    }
-                )
-                reg = register(source, cloud, wide, init=init)
-                if not reg.ok:  # the prior was off: global registration as in the paper
-                    reg = register(source, cloud, cfg.registration)
-            else:
-                reg = register(source, cloud, cfg.registration, init=init)
-            # beyond the paper: refine every accepted view at full resolution (the 1 cm voxel
-            # registration has a 1-3 mm aliasing bias that can keep the loop from meeting alpha)
-            pr = None
-            dT_C = reg.T
-            if reg.ok and cfg.projective is not None and isinstance(taught, PointCloud):
-                if src is None:  # cropped once per run
-                    src = _source(taught, cfg)
-                pr = self._projective(src, frame, reg.T)
-                if pr.ok:
-                    dT_C = pr.T
+            reg = self._register_view(source, cloud, T_Bk_Ck, T_Bo_Co, result.dT_B, prior)
+            pr, dT_C, src = self._refine_view(reg, taught, src, frame)
             t4 = time.perf_counter()
-            dT_B = delta_T_B(T_Bk_Ck, dT_C, T_Bo_Co) if reg.ok else None
-            it = IPEIteration(
-                k, q, T_Bk_Ck, reg, dT_B, pose_difference(dT_C), t2 - t1, t3 - t2, t4 - t3, pr
-            )
-            result.iterations.append(it)
-            _log.debug(
-                "IPE iteration %d: registration %s (fitness %.3f, rmse %.2f mm)%s",
-                k,
-                "ok" if reg.ok else f"refused: {reg.reason}",
-                reg.fitness,
-                1e3 * reg.rmse,
-                "" if pr is None else f"; projective {'ok' if pr.ok else pr.reason}",
-            )
+            dT_B = delta_T_B(T_Bk_Ck, dT_C, T_Bo_Co) if reg.ok else None  # eq. 9-10
+            _record(result, k, q, T_Bk_Ck, reg, dT_B, dT_C, (*times, t4), pr)
             if not reg.ok or dT_B is None:
                 if result.dT_B is None and not retreated and cfg.retreat > 0 and k < cfg.beta:
                     # beyond the paper: no estimate yet (little overlap, e.g. a tilted base):
                     # step the camera back along its optical axis for a wider view, try again
                     retreated = True
-                    back = T_Bk_Ck @ make_T(np.eye(3), [0.0, 0.0, -cfg.retreat])
-                    try:
-                        q_next = self.camera_joints(back, q)
-                        # keep the prior: the wider view is registered from it first
+                    q_back = self._retreat(T_Bk_Ck, q)
+                    if q_back is not None:  # keep the prior: the wider view starts from it
+                        q_next = q_back
                         continue
-                    except UnreachableError:
-                        pass
                 result.reason = f"iteration {k}: registration failed: {reg.reason}"
                 return result
-            if np.linalg.norm(dT_B[:3, 3]) > cfg.max_translation or _angle(dT_B) > cfg.max_rotation:
-                result.reason = (
-                    f"iteration {k}: implausible parking offset "
-                    f"({np.linalg.norm(dT_B[:3, 3]):.3f} m, {np.rad2deg(_angle(dT_B)):.1f} deg)"
-                )
+            if _implausible(dT_B, k, cfg, result):
                 return result
             result.dT_B = dT_B
-            if converged(dT_C, cfg.alpha) and _scale_fault(pr, cfg):
-                # at the taught viewpoint the refinement saw the scene at another depth scale
-                # than at teaching: a depth calibration fault (3 % moves dT_B by ~1 cm), not
-                # a pose offset; no estimate from this camera is trusted. (Away from the
-                # viewpoint the scale trades with depth-wise motion and is not checked.)
-                result.reason = (
-                    f"iteration {k}: depth scale {_depth_scale(pr):.4f} against the teaching "
-                    f"capture (accepted 1 +- {cfg.projective.max_scale_error}): a depth "
-                    "calibration fault of the camera; no estimate"
-                )
-                result.dT_B = None
-                return result
             if converged(dT_C, cfg.alpha):
-                result.ok = True
-                t5 = time.perf_counter()
-                if pr is not None and pr.ok and src is not None:
-                    # beyond the paper: the converged view once more with its colour image
-                    # (depth + photometric); the depth alone cannot tell a rotation about the
-                    # scene from a drift of the disparity between the sessions
-                    pc = _photometric(src, cfg, pr, frame, self.robot)
-                    if pc is not None:
-                        pr = pc
-                        result.dT_B = delta_T_B(T_Bk_Ck, pc.T, T_Bo_Co)
-                result.projective = pr  # dT_B above already comes from it when ok
-                if isinstance(taught, PointCloud):
-                    if (pr is None or not pr.ok) and cfg.final is not None:
-                        fin = register(prepared(taught, cfg.final), cloud, cfg.final, init=reg.T)
-                        result.final = fin
-                        if fin.ok:
-                            result.dT_B = delta_T_B(T_Bk_Ck, fin.T, T_Bo_Co)
-                    result.seconds_final = time.perf_counter() - t5
-                if cfg.witness is not None and result.dT_B is not None:
-                    self._witness(arm, camera, source, src, T_Bo_Co, q, result)
-                return result
+                view = (T_Bk_Ck, q, reg, pr, frame, cloud)
+                return self._converged_view(
+                    arm, camera, source, src, taught, T_Bo_Co, view, k, result
+                )
             if k == cfg.beta:
                 break
-            target = camera_target(dT_B, T_Bo_Co)
+            target = camera_target(dT_B, T_Bo_Co)  # eq. 11
             try:
                 q_next = self.camera_joints(target, q)
             except UnreachableError as e:
@@ -485,6 +280,190 @@ class IPE:
         )
         result.dT_B = None
         return result
+
+    def _first_view(
+        self, dT_B_prior: Array | None, T_Bo_Co: Array, q_next: Array
+    ) -> tuple[Array | None, Array]:
+        """The prior (None without one or when its view is out of reach) and the joints of
+        the first view: where the prior puts the taught camera, else the taught joints."""
+        prior = None if dT_B_prior is None else as_transform(dT_B_prior, "dT_B_prior")
+        if prior is not None:
+            try:
+                q_next = self.camera_joints(camera_target(prior, T_Bo_Co), q_next)
+            except UnreachableError:
+                prior = None  # the taught joints, as in the paper
+        return prior, q_next
+
+    def _capture_view(
+        self, arm: Arm, camera: Camera, q_next: Array
+    ) -> tuple[Array, RGBDFrame, PointCloud, tuple[float, float, float]]:
+        """Move to ``q_next`` and capture ``X_i(k)``: the joints reached, the averaged frame,
+        its cloud (without colours unless ``use_color``) and the times before the move, the
+        capture and after it."""
+        cfg = self.cfg
+        t1 = time.perf_counter()
+        arm.move_joints(q_next, self._move_duration(arm, q_next))
+        q = arm.joint_positions()
+        t2 = time.perf_counter()
+        frame, cloud = capture(camera, cfg.frames, cfg.min_depth, cfg.max_depth)
+        if not cfg.use_color:
+            cloud = PointCloud(cloud.points, None, cloud.frame)
+        t3 = time.perf_counter()
+        return q, frame, cloud, (t1, t2, t3)
+
+    def _register_view(
+        self,
+        source: Prepared,
+        cloud: PointCloud,
+        T_Bk_Ck: Array,
+        T_Bo_Co: Array,
+        dT_B: Array | None,
+        prior: Array | None,
+    ) -> Registration:
+        """``dT_C`` (eq. 3): the taught cloud registered to the view's. After the first view
+        the camera is back near its taught pose: the previous estimate ``dT_B`` (or the
+        prior) predicts ``dT_C`` (~ identity) and the fine stage starts there; the first
+        view from the prior with a wider gate, falling back to global registration."""
+        cfg = self.cfg
+        init = None
+        guess = dT_B if dT_B is not None else prior
+        if guess is not None and not cfg.global_each_iteration:
+            init = inv(T_Bk_Ck) @ guess @ T_Bo_Co
+        if init is not None and dT_B is None:  # first view, from the prior
+            wide = cfg.registration.model_copy(
+                update={
+                    "init_scales": PRIOR_SCALES,
+                    "max_init_shift": cfg.prior_max_shift,
+                    "max_init_rotation_deg": float(np.rad2deg(cfg.prior_max_rotation)),
+                }
+            )
+            reg = register(source, cloud, wide, init=init)
+            if not reg.ok:  # the prior was off: global registration as in the paper
+                reg = register(source, cloud, cfg.registration)
+            return reg
+        return register(source, cloud, cfg.registration, init=init)
+
+    def _refine_view(
+        self,
+        reg: Registration,
+        taught: PointCloud | Prepared,
+        src: tuple[Array, Array | None] | None,
+        frame: RGBDFrame,
+    ) -> tuple[ProjectiveResult | None, Array, tuple[Array, Array | None] | None]:
+        """Beyond the paper: every accepted view refined at full resolution (the 1 cm voxel
+        registration has a 1-3 mm aliasing bias that can keep the loop from meeting alpha).
+        The refinement (None when off), ``dT_C`` (from it when ok) and the taught points in
+        the depth crop (``src``, cropped once per run)."""
+        cfg = self.cfg
+        pr = None
+        dT_C = reg.T
+        if reg.ok and cfg.projective is not None and isinstance(taught, PointCloud):
+            if src is None:  # cropped once per run
+                src = _source(taught, cfg)
+            pr = self._projective(src, frame, reg.T)
+            if pr.ok:
+                dT_C = pr.T
+        return pr, dT_C, src
+
+    def _retreat(self, T_Bk_Ck: Array, q: Array) -> Array | None:
+        """The joints of the camera stepped back ``retreat`` along its optical axis (None
+        when out of reach)."""
+        back = T_Bk_Ck @ make_T(np.eye(3), [0.0, 0.0, -self.cfg.retreat])
+        try:
+            return self.camera_joints(back, q)
+        except UnreachableError:
+            return None
+
+    def _converged_view(
+        self,
+        arm: Arm,
+        camera: Camera,
+        source: Prepared,
+        src: tuple[Array, Array | None] | None,
+        taught: PointCloud | Prepared,
+        T_Bo_Co: Array,
+        view: tuple[Array, Array, Registration, ProjectiveResult | None, RGBDFrame, PointCloud],
+        k: int,
+        result: IPEResult,
+    ) -> IPEResult:
+        """``dT_C`` is below ``alpha``: the depth-scale check, then (beyond the paper) the
+        photometric refinement of the converged view, the 4 mm final registration where the
+        projective one is off or refused, and the witness view. ``view`` = (``T_Bk_Ck``, the
+        joints, the registration, its projective refinement, the frame, its cloud)."""
+        cfg = self.cfg
+        T_Bk_Ck, q, reg, pr, frame, cloud = view
+        if _scale_fault(pr, cfg):
+            # at the taught viewpoint the refinement saw the scene at another depth scale
+            # than at teaching: a depth calibration fault (3 % moves dT_B by ~1 cm), not
+            # a pose offset; no estimate from this camera is trusted. (Away from the
+            # viewpoint the scale trades with depth-wise motion and is not checked.)
+            result.reason = (
+                f"iteration {k}: depth scale {_depth_scale(pr):.4f} against the teaching "
+                f"capture (accepted 1 +- {cfg.projective.max_scale_error}): a depth "
+                "calibration fault of the camera; no estimate"
+            )
+            result.dT_B = None
+            return result
+        result.ok = True
+        t5 = time.perf_counter()
+        if pr is not None and pr.ok and src is not None:
+            # beyond the paper: the converged view once more with its colour image
+            # (depth + photometric); the depth alone cannot tell a rotation about the
+            # scene from a drift of the disparity between the sessions
+            pc = _photometric(src, cfg, pr, frame, self.robot)
+            if pc is not None:
+                pr = pc
+                result.dT_B = delta_T_B(T_Bk_Ck, pc.T, T_Bo_Co)
+        result.projective = pr  # dT_B above already comes from it when ok
+        if isinstance(taught, PointCloud):
+            if (pr is None or not pr.ok) and cfg.final is not None:
+                fin = register(prepared(taught, cfg.final), cloud, cfg.final, init=reg.T)
+                result.final = fin
+                if fin.ok:
+                    result.dT_B = delta_T_B(T_Bk_Ck, fin.T, T_Bo_Co)
+            result.seconds_final = time.perf_counter() - t5
+        if cfg.witness is not None and result.dT_B is not None:
+            self._witness(arm, camera, source, src, T_Bo_Co, q, result)
+        return result
+
+
+def _record(
+    result: IPEResult,
+    k: int,
+    q: Array,
+    T_Bk_Ck: Array,
+    reg: Registration,
+    dT_B: Array | None,
+    dT_C: Array,
+    times: tuple[float, float, float, float],
+    pr: ProjectiveResult | None,
+) -> None:
+    """Append the iteration to ``result`` (``times``: before the move, the capture, the
+    registration, after the refinement) and log it."""
+    t1, t2, t3, t4 = times
+    it = IPEIteration(
+        k, q, T_Bk_Ck, reg, dT_B, pose_difference(dT_C), t2 - t1, t3 - t2, t4 - t3, pr
+    )
+    result.iterations.append(it)
+    _log.debug(
+        "IPE iteration %d: registration %s (fitness %.3f, rmse %.2f mm)%s",
+        k,
+        "ok" if reg.ok else f"refused: {reg.reason}",
+        reg.fitness,
+        1e3 * reg.rmse,
+        "" if pr is None else f"; projective {'ok' if pr.ok else pr.reason}",
+    )
+
+
+def _implausible(dT_B: Array, k: int, cfg: IPEConfig, result: IPEResult) -> bool:
+    """``dT_B`` beyond ``max_translation`` / ``max_rotation`` (sets ``result.reason``)."""
+    if np.linalg.norm(dT_B[:3, 3]) > cfg.max_translation or _angle(dT_B) > cfg.max_rotation:
+        result.reason = (
+            f"iteration {k}: implausible parking offset "
+            f"({np.linalg.norm(dT_B[:3, 3]):.3f} m, {np.rad2deg(_angle(dT_B)):.1f} deg)"
+        )
+        return True
+    return False
 
 
 def view_consistency(dT_B_a: Array, dT_B_b: Array, T_Bo_Co: Array) -> tuple[float, float]:
