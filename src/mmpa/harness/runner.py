@@ -36,6 +36,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Iterable, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -173,6 +174,104 @@ def run_experiment(
         _executor.discard_prestarted()  # workers no executor took over (an error before)
 
 
+def _check_options(
+    name: str,
+    mod: Any,
+    *,
+    workers: int,
+    executor: str,
+    ray_address: str | None,
+    resume: bool,
+    compare: Sequence[str],
+    record: str | Path | None,
+) -> bool:
+    """Refuse the run options experiment ``name`` (its module ``mod``) cannot honour; returns
+    whether it runs its trials on an executor (``PARALLEL_TRIALS``)."""
+    parallel = getattr(mod, "PARALLEL_TRIALS", False)
+    if record is not None and not getattr(mod, "RECORDS_TRIALS", False):
+        raise ConfigError(
+            f"experiment {name!r} cannot record its trials (--record): only the experiments "
+            "whose trials run one by one in a twin site record, one bag per trial: "
+            + ", ".join(k for k, v in EXPERIMENTS.items() if _parallel(v, "RECORDS_TRIALS"))
+        )
+    if not parallel and (workers != 1 or executor != "local" or ray_address or resume):
+        raise ConfigError(
+            f"experiment {name!r} runs its trials in one process: --workers, --executor, "
+            "--ray-address and --resume apply to "
+            + ", ".join(k for k, v in EXPERIMENTS.items() if _parallel(v))
+        )
+    if compare and "errors" not in mod.Config.model_fields:
+        raise ConfigError(
+            f"experiment {name!r} runs no twin error model: --compare-profile is moot"
+        )
+    return bool(parallel)
+
+
+def _settings(
+    name: str, mod: Any, seed: int | None, trials: int | None, profile: str | None
+) -> list[str]:
+    """The ``key=value`` settings the command line's options stand for."""
+    sets = []
+    if profile is not None:
+        if "errors" not in mod.Config.model_fields:
+            raise ConfigError(f"experiment {name!r} runs no twin error model: --profile is moot")
+        sets.append(f"errors.profile={profile}")
+    if seed is not None:
+        sets.append(f"seed={seed}")
+    if trials is not None:
+        if trials < 1:
+            raise ConfigError(f"--trials must be at least 1, got {trials}")
+        sets.append(f"trials={trials}")
+    fields = mod.Config.model_fields
+    if "experiment" in fields:  # one module serving several names (e.g. ablation-alpha/-beta)
+        sets.append(f"experiment={name}")
+    return sets
+
+
+def _run_on_executor(
+    name: str,
+    mod: Any,
+    cfg: BaseModel,
+    ctx: Context,
+    executor: str,
+    workers: int,
+    resume: bool,
+    ray_address: str | None,
+    record: str | Path | None,
+) -> Outcome:
+    """``mod.run`` with its trials on the executor (and recording them to ``record``)."""
+    with (
+        make_executor(executor, workers, ctx.out, resume, ray_address) as ex,
+        record_trials(record) if record is not None else nullcontext() as target,
+    ):
+        ctx.executor = ex
+        outcome: Outcome = mod.run(cfg, ctx)
+    outcome.summary.setdefault("executor", ex.describe())
+    if target is not None:
+        if not target.used:  # no silent ignore: it ran trials that did not record
+            raise ConfigError(
+                f"experiment {name!r} ran no trials that can record (--record): "
+                f"nothing was recorded to {record}"
+            )
+        outcome.summary.setdefault("bags", str(target.folder))
+    return outcome
+
+
+def _write_outputs(name: str, mod: Any, cfg: BaseModel, outcome: Outcome, out: Path) -> str:
+    """results.csv, summary.json and report.md of a run; returns the report's text."""
+    errors = getattr(cfg, "errors", None)
+    if errors is not None:
+        outcome.summary.setdefault("profile", errors.profile)
+    write_csv(out / "results.csv", outcome.rows)
+    (out / "summary.json").write_text(json.dumps(_jsonable(outcome.summary), indent=2) + "\n")
+    head = f"# mmpa experiment {name}\n\nReproduces {mod.PAPER}.\n\n"
+    if errors is not None:
+        head += f"Twin error model: profile `{errors.profile}` (seed {errors.seed}).\n\n"
+    report = head + outcome.report.rstrip() + "\n"
+    (out / "report.md").write_text(report)
+    return report
+
+
 def _run_experiment(
     name: str,
     out: str | Path,
@@ -191,37 +290,11 @@ def _run_experiment(
     record: str | Path | None,
 ) -> Outcome:
     mod = experiment_module(name)
-    parallel = getattr(mod, "PARALLEL_TRIALS", False)
-    if record is not None and not getattr(mod, "RECORDS_TRIALS", False):
-        raise ConfigError(
-            f"experiment {name!r} cannot record its trials (--record): only the experiments "
-            "whose trials run one by one in a twin site record, one bag per trial: "
-            + ", ".join(k for k, v in EXPERIMENTS.items() if _parallel(v, "RECORDS_TRIALS"))
-        )
-    if not parallel and (workers != 1 or executor != "local" or ray_address or resume):
-        raise ConfigError(
-            f"experiment {name!r} runs its trials in one process: --workers, --executor, "
-            "--ray-address and --resume apply to "
-            + ", ".join(k for k, v in EXPERIMENTS.items() if _parallel(v))
-        )
-    if compare and "errors" not in mod.Config.model_fields:
-        raise ConfigError(
-            f"experiment {name!r} runs no twin error model: --compare-profile is moot"
-        )
-    sets = []
-    if profile is not None:
-        if "errors" not in mod.Config.model_fields:
-            raise ConfigError(f"experiment {name!r} runs no twin error model: --profile is moot")
-        sets.append(f"errors.profile={profile}")
-    if seed is not None:
-        sets.append(f"seed={seed}")
-    if trials is not None:
-        if trials < 1:
-            raise ConfigError(f"--trials must be at least 1, got {trials}")
-        sets.append(f"trials={trials}")
-    fields = mod.Config.model_fields
-    if "experiment" in fields:  # one module serving several names (e.g. ablation-alpha/-beta)
-        sets.append(f"experiment={name}")
+    parallel = _check_options(
+        name, mod, workers=workers, executor=executor, ray_address=ray_address,
+        resume=resume, compare=compare, record=record,
+    )  # fmt: skip
+    sets = _settings(name, mod, seed, trials, profile)
     cfg: BaseModel = load_config(mod.Config, config, [*sets, *overrides])
     out = Path(out)
     if resume:
@@ -231,37 +304,16 @@ def _run_experiment(
     ctx = Context(name=name, out=out, progress=progress or (lambda stage, frac: None))
     t0 = time.perf_counter()
     if parallel:
-        from contextlib import nullcontext
-
-        with (
-            make_executor(executor, workers, out, resume, ray_address) as ex,
-            record_trials(record) if record is not None else nullcontext() as target,
-        ):
-            ctx.executor = ex
-            outcome: Outcome = mod.run(cfg, ctx)
-        outcome.summary.setdefault("executor", ex.describe())
-        if target is not None:
-            if not target.used:  # no silent ignore: it ran trials that did not record
-                raise ConfigError(
-                    f"experiment {name!r} ran no trials that can record (--record): "
-                    f"nothing was recorded to {record}"
-                )
-            outcome.summary.setdefault("bags", str(target.folder))
+        outcome = _run_on_executor(
+            name, mod, cfg, ctx, executor, workers, resume, ray_address, record
+        )
     else:
         outcome = mod.run(cfg, ctx)
     wall = time.perf_counter() - t0
     outcome.summary.setdefault("wall_seconds", round(wall, 2))
-    errors = getattr(cfg, "errors", None)
-    if errors is not None:
-        outcome.summary.setdefault("profile", errors.profile)
-    write_csv(out / "results.csv", outcome.rows)
-    (out / "summary.json").write_text(json.dumps(_jsonable(outcome.summary), indent=2) + "\n")
-    head = f"# mmpa experiment {name}\n\nReproduces {mod.PAPER}.\n\n"
-    if errors is not None:
-        head += f"Twin error model: profile `{errors.profile}` (seed {errors.seed}).\n\n"
-    report = head + outcome.report.rstrip() + "\n"
-    (out / "report.md").write_text(report)
+    report = _write_outputs(name, mod, cfg, outcome, out)
     if compare:
+        errors = getattr(cfg, "errors", None)
         others = {}
         # the other runs' profile is theirs: an ``errors.profile`` override would win over it
         keep = [o for o in overrides if o.split("=", 1)[0].strip() != "errors.profile"]
