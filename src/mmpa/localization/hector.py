@@ -11,14 +11,14 @@ Map values are a blurred occupancy (Gaussian, one cell) so that the gradient rea
 beyond the walls, as Hector's interpolation of log-odds does.
 
 Failure signal (improvement): Gauss-Newton always returns a pose, even for a scan that fits
-nothing (a scan with wrong ranges drifted 185 m without a word). The match's score is the
-mean map value at the matched endpoints on the finest level (1 on the walls, 0 in free
-space); below ``min_score``, or farther than ``max_jump`` from the odometry guess, the match is
-rejected: the estimate stays on odometry and the result says ``ok=False`` with the reason
-(``last_score``; ``failures`` counts them). A tight jump gate (0.5 m) locked the realistic
-twin out after one rejection (37 mm -> 0.8 m error); 1 m did not. Limits: a scan that fits
-the map somewhere near (the reference twin's room with doubled ranges: score 0.26, 0.2 m
-away) is not caught by one scan's numbers.
+nothing. The match's score is the mean map value at the matched endpoints on the finest level
+(1 on the walls, 0 in free space); below ``min_score``, or farther than ``max_jump`` from the
+odometry guess, the match is rejected: the estimate stays on odometry and the result says
+``ok=False`` with the reason (``last_score``; ``failures`` counts them). Limits: a scan that
+fits the map somewhere near is not caught by one scan's numbers. Measurements behind the
+gates: ``docs/localization.md``.
+
+Units: m, rad; poses ``[x, y, theta]`` in ``map``, the lidar mount in ``base_link``.
 """
 
 from __future__ import annotations
@@ -50,12 +50,10 @@ class HectorConfig(BaseModel):
     iterations: int = Field(8, ge=1)  # Gauss-Newton steps per level
     max_beams: int = Field(360, ge=10)
     blur_cells: float = Field(1.0, ge=0)
-    # mean map value at the matched endpoints; twin drives (reference and realistic): good
-    # matches 0.15-0.6 (median 0.41), a scan with doubled ranges 0.03-0.05
+    # mean map value at the matched endpoints (1 on the walls, 0 in free space): below this a
+    # match fits nothing
     min_score: float = Field(0.12, ge=0, le=1)
-    # m: a match this far from the odometry guess is rejected (doubled ranges, realistic twin:
-    # 1.2-4.2 m). 12 s twin drives (reference, realistic seeds 0-2): same final errors as
-    # ungated (92 / 61 / 84 / 50 mm); ungated, single matches jumped up to 2.1 m and back
+    # m: a match this far from the odometry guess is rejected
     max_jump: float = Field(1.0, gt=0)
 
 
