@@ -170,48 +170,11 @@ def run_demo(
             cfg.arm_view if cfg.arm_view is not None else world.nominal.arm.view_bench
         )
         taught = _teach_first(world, cfg, progress)
-        recorder = None
-        if record is not None or view is not None:
-            sinks: list = []
-            if record is not None:
-                bag = stack.enter_context(BagWriter(record, overwrite=True))
-                sinks.append(bag)
-            if view is not None:
-                sinks.append(stack.enter_context(FoxgloveView(port=view)))
-                if progress:
-                    progress(f"live view: open ws://127.0.0.1:{sinks[-1].port} in Foxglove", 0.0)
-            sink = sinks[0] if len(sinks) == 1 else Tee(*sinks)
-            # the arm at 50 Hz through every motion (MMPA's path, the capture's view move)
-            recorder = stack.enter_context(Recorder(sink, world, joint_rate_hz=ARM_RATE_HZ))
+        recorder, sinks, bag = _observers(stack, world, record, view, progress)
+        if recorder is not None:
             world = recorder.world()
         start = world.truth.base_pose2d()
-        estimate = None
-        if cfg.localization == "truth":
-            done, path = _drive_true_pose(world, goal, cfg, progress)
-            loc_err = None
-        else:
-            grid = twin_map(world)
-            rng = np.random.default_rng(cfg.errors.seed)
-            loc = twin_localizer(world, cfg.localization, rng, grid=grid)
-            if recorder is not None:
-                recorder.write_map(grid)
-                loc = recorder.localizer(loc)
-            loc.initialize(rough_initial_pose(world))  # the operator's rough pose (truth + error)
-            nav_cfg = cfg.navigate.model_copy(update={"timeout": cfg.timeout})
-            res = navigate(
-                world,
-                loc,
-                grid,
-                goal,
-                nav_cfg,
-                progress=progress,
-                costmap=CostMap(twin_nav_map(world), nav_cfg.planner),
-                truth=world.truth.base_pose2d,
-            )
-            done = res.reached
-            path = list(res.trace["truth"]) or [start]
-            loc_err = res.localization_error
-            estimate = res.trace["estimate"][-1] if len(res.trace["estimate"]) else None
+        done, path, loc_err, estimate = _drive(world, recorder, cfg, goal, start, progress)
         world.base.stop()
         world.step(0.5)
         drive_time = world.time
@@ -252,13 +215,75 @@ def run_demo(
             **{k: v for k, v in extra.items() if not k.startswith("_")},
             **mmpa_summary,
         }
-        if record is not None:
+        if bag is not None:
             summary["bag"] = str(record)
             summary["bag_messages"] = sum(bag.counts.values())
         if view is not None:
             summary["view"] = f"ws://127.0.0.1:{sinks[-1].port}"
     _write_summary(out, summary)
     return summary
+
+
+def _observers(
+    stack: ExitStack,
+    world: SimWorld,
+    record: str | Path | None,
+    view: int | None,
+    progress: Progress | None,
+) -> tuple[Recorder | None, list, BagWriter | None]:
+    """The run's recorder into the bag ``record`` and/or the live view on port ``view``
+    (None, [], None without either): ``(recorder, sinks, bag)``."""
+    if record is None and view is None:
+        return None, [], None
+    sinks: list = []
+    bag = None
+    if record is not None:
+        bag = stack.enter_context(BagWriter(record, overwrite=True))
+        sinks.append(bag)
+    if view is not None:
+        sinks.append(stack.enter_context(FoxgloveView(port=view)))
+        if progress:
+            progress(f"live view: open ws://127.0.0.1:{sinks[-1].port} in Foxglove", 0.0)
+    sink = sinks[0] if len(sinks) == 1 else Tee(*sinks)
+    # the arm at 50 Hz through every motion (MMPA's path, the capture's view move)
+    recorder = stack.enter_context(Recorder(sink, world, joint_rate_hz=ARM_RATE_HZ))
+    return recorder, sinks, bag
+
+
+def _drive(
+    world: SimWorld,
+    recorder: Recorder | None,
+    cfg: DemoConfig,
+    goal: Array,
+    start: Array,
+    progress: Progress | None,
+) -> tuple[bool, list, Array | None, Array | None]:
+    """Drive to ``goal`` on the true pose or on the localizer ``cfg.localization`` (from the
+    operator's rough pose): ``(reached, true path, localization error, last estimate)``."""
+    if cfg.localization == "truth":
+        done, path = _drive_true_pose(world, goal, cfg, progress)
+        return done, path, None, None
+    grid = twin_map(world)
+    rng = np.random.default_rng(cfg.errors.seed)
+    loc = twin_localizer(world, cfg.localization, rng, grid=grid)
+    if recorder is not None:
+        recorder.write_map(grid)
+        loc = recorder.localizer(loc)
+    loc.initialize(rough_initial_pose(world))  # the operator's rough pose (truth + error)
+    nav_cfg = cfg.navigate.model_copy(update={"timeout": cfg.timeout})
+    res = navigate(
+        world,
+        loc,
+        grid,
+        goal,
+        nav_cfg,
+        progress=progress,
+        costmap=CostMap(twin_nav_map(world), nav_cfg.planner),
+        truth=world.truth.base_pose2d,
+    )
+    path = list(res.trace["truth"]) or [start]
+    estimate = res.trace["estimate"][-1] if len(res.trace["estimate"]) else None
+    return res.reached, path, res.localization_error, estimate
 
 
 def _teach_first(world: SimWorld, cfg: DemoConfig, progress: Progress | None):
