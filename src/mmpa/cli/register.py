@@ -57,7 +57,6 @@ def register_cmd(
     (and projective ICP with --refine); print the pose, the metrics and the verdict. Either
     --color1/--depth1/--color2/--depth2/--intrinsics, or --bag with --from/--to."""
     from mmpa.apps import register as rr
-    from mmpa.core.errors import InvalidInputError
 
     pngs = {
         "--color1": color1,
@@ -69,40 +68,66 @@ def register_cmd(
     try:
         dest = out_dir(out) if out is not None else None  # fail early on a bad folder
         if bag is not None:
-            given = [k for k, v in pngs.items() if v is not None]
-            if given:
-                raise InvalidInputError(f"--bag excludes the image options ({', '.join(given)})")
-            if t_from is None or t_to is None:
-                raise InvalidInputError("--bag needs --from and --to (s after the first frame)")
-            from mmpa.apps.register import BagTopics
-
-            topics = BagTopics(color=color_topic, depth=depth_topic, camera_info=info_topic)
-            with console.status(f"reading camera frames of {bag}"):
-                f1, f2 = rr.frames_from_bag(bag, t_from, t_to, topics)
+            topics = (color_topic, depth_topic, info_topic)
+            f1, f2 = _bag_frames(bag, t_from, t_to, topics, pngs)
         else:
-            missing = [k for k, v in pngs.items() if v is None]
-            if missing:
-                raise InvalidInputError(
-                    f"give --bag BAG --from T1 --to T2, or all of --color1 --depth1 --color2 "
-                    f"--depth2 --intrinsics (missing {', '.join(missing)})"
-                )
-            if t_from is not None or t_to is not None:
-                raise InvalidInputError("--from/--to need --bag")
-            assert color1 and depth1 and color2 and depth2 and intrinsics
-            f1 = rr.load_png_frame(color1, depth1, intrinsics, depth_scale)
-            f2 = rr.load_png_frame(color2, depth2, intrinsics, depth_scale, stamp=1.0)
-            if f1.depth.shape != f2.depth.shape:
-                raise InvalidInputError(
-                    f"frame 1 ({color1}) is {f1.depth.shape[1]}x{f1.depth.shape[0]}, frame 2 "
-                    f"({color2}) is {f2.depth.shape[1]}x{f2.depth.shape[0]}: one camera "
-                    f"(--intrinsics) needs one image size"
-                )
+            f1, f2 = _png_frames(pngs, depth_scale, t_from is not None or t_to is not None)
         with console.status("registering"):
             r = rr.register_frames(f1, f2, refine=refine)
         s = rr.write_outputs(dest, r) if dest is not None else rr.summary(r)
     except MMPAError as e:
         fail(e)
     _print(s, out)
+
+
+def _bag_frames(
+    bag: Path,
+    t_from: float | None,
+    t_to: float | None,
+    topics: tuple[str, str, str],
+    pngs: dict[str, Path | None],
+) -> tuple:
+    """The two RGB-D frames of ``bag`` nearest to ``t_from`` / ``t_to`` s after its first
+    frame, on the ``(colour, depth, camera info)`` topics; the image options refused."""
+    from mmpa.apps import register as rr
+    from mmpa.apps.register import BagTopics
+    from mmpa.core.errors import InvalidInputError
+
+    given = [k for k, v in pngs.items() if v is not None]
+    if given:
+        raise InvalidInputError(f"--bag excludes the image options ({', '.join(given)})")
+    if t_from is None or t_to is None:
+        raise InvalidInputError("--bag needs --from and --to (s after the first frame)")
+    tp = BagTopics(color=topics[0], depth=topics[1], camera_info=topics[2])
+    with console.status(f"reading camera frames of {bag}"):
+        return rr.frames_from_bag(bag, t_from, t_to, tp)
+
+
+def _png_frames(pngs: dict[str, Path | None], depth_scale: float, times_given: bool) -> tuple:
+    """The two RGB-D frames of the colour / depth PNGs with the intrinsics file; all five
+    options needed (and no --from/--to: ``times_given``), one image size."""
+    from mmpa.apps import register as rr
+    from mmpa.core.errors import InvalidInputError
+
+    missing = [k for k, v in pngs.items() if v is None]
+    if missing:
+        raise InvalidInputError(
+            f"give --bag BAG --from T1 --to T2, or all of --color1 --depth1 --color2 "
+            f"--depth2 --intrinsics (missing {', '.join(missing)})"
+        )
+    if times_given:
+        raise InvalidInputError("--from/--to need --bag")
+    color1, depth1, color2, depth2, intrinsics = pngs.values()
+    assert color1 and depth1 and color2 and depth2 and intrinsics
+    f1 = rr.load_png_frame(color1, depth1, intrinsics, depth_scale)
+    f2 = rr.load_png_frame(color2, depth2, intrinsics, depth_scale, stamp=1.0)
+    if f1.depth.shape != f2.depth.shape:
+        raise InvalidInputError(
+            f"frame 1 ({color1}) is {f1.depth.shape[1]}x{f1.depth.shape[0]}, frame 2 "
+            f"({color2}) is {f2.depth.shape[1]}x{f2.depth.shape[0]}: one camera "
+            f"(--intrinsics) needs one image size"
+        )
+    return f1, f2
 
 
 def _print(s: dict, out: Path | None) -> None:
