@@ -120,6 +120,36 @@ def lidar_mount_cmd(
     )
 
 
+_BearingOpt = Annotated[
+    str,
+    typer.Option(
+        help="reflector bearing: intensity (centroid of the intensity profile, sub-beam) "
+        "or mean (the cluster's mean beam angle, paper 001)"
+    ),
+]
+_AnchorOpt = Annotated[
+    str,
+    typer.Option(
+        help="placement of the surveyed layout: poses (the laser-only localization's "
+        "frame) or reflector-map (rigidly onto the site's existing reflector map)"
+    ),
+]
+_MapMatchOpt = Annotated[
+    bool,
+    typer.Option(
+        "--map-match/--no-map-match",
+        help="refine each stop's pose by matching its mean scan onto the map",
+    ),
+]
+_RefineOpt = Annotated[
+    bool | None,
+    typer.Option(
+        "--refine/--no-refine",
+        help="joint pose/reflector refinement (default: only without --map-match)",
+    ),
+]
+
+
 @calibrate_app.command("reflectors")
 def reflectors_cmd(
     out: Annotated[
@@ -134,34 +164,10 @@ def reflectors_cmd(
     ] = 1.0,
     scans: Annotated[int, typer.Option(help="scans per survey stop", min=1, max=1000)] = 30,
     method: Annotated[str, typer.Option(help="laser-only localizer: hector or amcl")] = "hector",
-    bearing: Annotated[
-        str,
-        typer.Option(
-            help="reflector bearing: intensity (centroid of the intensity profile, sub-beam) "
-            "or mean (the cluster's mean beam angle, paper 001)"
-        ),
-    ] = "intensity",
-    anchor: Annotated[
-        str,
-        typer.Option(
-            help="placement of the surveyed layout: poses (the laser-only localization's "
-            "frame) or reflector-map (rigidly onto the site's existing reflector map)"
-        ),
-    ] = "poses",
-    map_match: Annotated[
-        bool,
-        typer.Option(
-            "--map-match/--no-map-match",
-            help="refine each stop's pose by matching its mean scan onto the map",
-        ),
-    ] = True,
-    refine: Annotated[
-        bool | None,
-        typer.Option(
-            "--refine/--no-refine",
-            help="joint pose/reflector refinement (default: only without --map-match)",
-        ),
-    ] = None,
+    bearing: _BearingOpt = "intensity",
+    anchor: _AnchorOpt = "poses",
+    map_match: _MapMatchOpt = True,
+    refine: _RefineOpt = None,
     seed: Annotated[int, typer.Option(help="robot instance of the twin's error model", min=0)] = 0,
     profile: Annotated[
         str, typer.Option(help="error model profile: ideal, reference, realistic, harsh")
