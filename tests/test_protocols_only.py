@@ -15,7 +15,7 @@ import pytest
 
 from mmpa.backends.twin.error_model import ErrorModelConfig
 from mmpa.backends.twin.world import SimWorld
-from mmpa.robot.interfaces import Arm, Base, Camera, Gripper
+from mmpa.robot.interfaces import Arm, Base, Camera, Gripper, StreamingArm
 
 
 class OnlyArm:
@@ -35,6 +35,25 @@ class OnlyArm:
 
     def command(self, q):
         return self._a.command(q)
+
+    @property
+    def limits(self):
+        return self._a.limits
+
+    @property
+    def stream_limits(self):
+        return self._a.stream_limits
+
+    @property
+    def stream_acceleration_limited(self):
+        return self._a.stream_acceleration_limited
+
+    @stream_acceleration_limited.setter
+    def stream_acceleration_limited(self, on):
+        self._a.stream_acceleration_limited = on
+
+    def stopped(self):
+        return self._a.stopped()
 
 
 class OnlyCamera:
@@ -129,17 +148,19 @@ def test_grasp_over_protocols_only() -> None:
     from tests.test_servo_twin import _ball_under_the_look_view
 
     from mmpa.experiments.paper001.grasp import SERVO_RESOLUTION, OracleDetector
-    from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+    from mmpa.servo.config import GraspConfig
+    from mmpa.servo.grasp import TrackingGrasp
 
     with SimWorld(site="0") as w:
         rb = _ball_under_the_look_view(w, 0.3)
         top = w.truth.T_map_object("tennis_ball")[2, 3]
         w.camera.set_resolution(*SERVO_RESOLUTION)
         g = TrackingGrasp(OracleDetector(w), rb, GraspConfig())
-        base, grip = OnlyBase(w.base), OnlyGripper(w.gripper)
+        base, grip, arm = OnlyBase(w.base), OnlyGripper(w.gripper), OnlyArm(w.arm)
         assert isinstance(base, Base) and isinstance(grip, Gripper)
+        assert isinstance(arm, StreamingArm)
         res = g.run(
-            "tennis_ball", OnlyArm(w.arm), grip, OnlyCamera(w.camera), base, w.step,
+            "tennis_ball", arm, grip, OnlyCamera(w.camera), base, w.step,
             lambda: w.time,
         )  # fmt: skip
         assert res.reason == "grasped", res.reason

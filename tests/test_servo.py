@@ -195,9 +195,10 @@ def test_still_line_tells_a_jittery_still_object_from_a_moving_one():
     follow turns) reports the object moving faster than ``final_standoff_max_speed`` at some
     tick, the 1 s least-squares line does not; an object moving at 0.1 m/s gets no line; too
     short a history tells nothing."""
-    from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+    from mmpa.servo.config import TrackConfig
+    from mmpa.servo.tracker import is_moving, still_line
 
-    g = TrackingGrasp(None, default_robot(), GraspConfig())
+    cfg = TrackConfig()
     rng = np.random.default_rng(7)
     c = np.array([0.5, 0.0, -0.02])
     kf = ConstantVelocityKF(PredictorConfig())
@@ -206,17 +207,17 @@ def test_still_line_tells_a_jittery_still_object_from_a_moving_one():
         z = c + rng.normal(0, 0.01, 3) * [1, 1, 0.2]
         kf.update(z)
         hist = [h for h in [*hist, (0.05 * k, z)] if h[0] >= 0.05 * k - 1.0]
-        fast += g._moving(kf.velocity())
+        fast += is_moving(kf.velocity(), cfg.final_standoff_max_speed)
         kf.predict(0.05)
     assert fast > 0  # the filter alone calls it moving at times
-    line = g._still_line(hist)
+    line = still_line(hist, cfg)
     assert line is not None
     assert np.linalg.norm(line[1][:2]) < 0.05
     assert np.linalg.norm(line[0][:2] - c[:2]) < 0.01
     v = np.array([0.1, 0.0, 0.0])
     moving = [(0.05 * k, c + v * 0.05 * k + rng.normal(0, 0.01, 3)) for k in range(21)]
-    assert g._still_line(moving) is None
-    assert g._still_line(hist[-5:]) is None  # 0.2 s of measurements: cannot tell
+    assert still_line(moving, cfg) is None
+    assert still_line(hist[-5:], cfg) is None  # 0.2 s of measurements: cannot tell
 
 
 def test_surfaces_split_at_depth_steps():
@@ -242,7 +243,7 @@ def test_surfaces_split_at_depth_steps():
 def test_ramp_profile_closed_form():
     """Trapezoid (cruise reached) and triangle (too short): the duration, the distance at
     the end, the speed and acceleration bounds by finite differences, the peak speed."""
-    from mmpa.servo.grasp import ramp_profile
+    from mmpa.servo.descent import ramp_profile
 
     for d, v, a, t_expect, v_peak in (
         (0.3, 0.5, 2.0, 0.3 / 0.5 + 0.5 / 2.0, 0.5),  # d > v^2 / a: cruises at v
@@ -263,7 +264,7 @@ def test_ramp_profile_closed_form():
 
 
 def test_ramp_profile_without_an_acceleration_limit_is_constant_speed():
-    from mmpa.servo.grasp import ramp_profile
+    from mmpa.servo.descent import ramp_profile
 
     duration, s = ramp_profile(0.3, 1.2, np.inf)
     assert duration == pytest.approx(0.25)
@@ -283,24 +284,29 @@ class _RecordingArm:
     def command(self, q):
         self.sent.append((self.clock[0], np.array(q, float)))
 
+    def stopped(self):
+        return None
+
 
 def test_stream_reaches_a_joint_velocity_at_the_acceleration_limit_between_ticks():
     """Limited ("always"): a step in the wanted joint velocity at a 20 Hz tick is streamed
-    at ``servo_rate_hz`` (100 Hz) as a ramp at ``joint_accel_fraction`` of qdd_max of the
+    at ``stream.rate_hz`` (100 Hz) as a ramp at ``joint_accel_fraction`` of qdd_max of the
     joint that needs the longest (the others scaled: the direction kept), reached after
     ``max_j |qdot_j| / (a_j h)`` set-points (closed form), the set-point the tick returned
     being the one streamed at the tick's end. "never": the same at the arm's hard stream
     limit ``qdd_stream_max`` (40 rad/s^2: 2 set-points; before issue 22's hard limit, one
     set-point per tick, the velocity at once); the arm's limiter is switched to match each
     time."""
-    from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+    from mmpa.servo.config import GraspConfig
+    from mmpa.servo.pose import ArmGeometry
+    from mmpa.servo.stream import Stream
 
     rb = default_robot()
     q0 = np.array(rb.arm.home, float)
     qdot = np.array([0.6, -0.3, 0.2, 0.5, 0.0, -0.4])
     for mode in ("always", "never"):
-        cfg = GraspConfig(stream_accel_limit=mode)
-        g = TrackingGrasp(None, rb, cfg)
+        cfg = GraspConfig(stream={"accel_limit": mode})
+        g = Stream(ArmGeometry.of(rb, cfg.stream.joint_margin), cfg.stream, cfg.intercept)
         clock = [0.0]
         arm = _RecordingArm(clock)
         arm.stream_acceleration_limited = mode == "never"  # the grasp sets it
@@ -308,25 +314,25 @@ def test_stream_reaches_a_joint_velocity_at_the_acceleration_limit_between_ticks
         def tick(duration, clock=clock):
             clock[0] += duration
 
-        g._clock = lambda clock=clock: clock[0]
-        g._set_limited(arm, cfg.stream_accel_limit != "never")
+        g.clock = lambda clock=clock: clock[0]
+        g.set_limited(arm, cfg.stream.accel_limit != "never")
         assert arm.stream_acceleration_limited == (mode == "always")
-        wait = g._streaming(arm, tick)
-        g._start_stream(q0)
+        wait = g.streaming(arm, tick)
+        g.start(q0)
         for _ in range(6):  # 0.3 s at 20 Hz
-            q_end = g._send(arm, qdot, 0.05)
+            q_end = g.send(qdot, 0.05)
             wait(0.05)
             np.testing.assert_allclose(arm.sent[-1][1], q_end, atol=1e-12)
         t = np.array([s[0] for s in arm.sent])
         q = np.array([q0] + [s[1] for s in arm.sent])
-        h = 1.0 / cfg.servo_rate_hz
+        h = 1.0 / cfg.stream.rate_hz
         np.testing.assert_allclose(np.diff(t), h)
         assert len(arm.sent) == 30
         v = np.diff(q, axis=0) / h
         if mode == "never":
             a_lim = np.asarray(rb.arm.qdd_stream_max)
         else:
-            a_lim = np.asarray(rb.arm.qdd_max) * cfg.joint_accel_fraction
+            a_lim = np.asarray(rb.arm.qdd_max) * cfg.stream.joint_accel_fraction
         assert np.all(np.abs(np.diff(v, axis=0)) / h <= a_lim * (1 + 1e-9))
         n = int(np.ceil(np.max(np.abs(qdot) / (a_lim * h)) - 1e-9))
         np.testing.assert_allclose(v[n - 1 :], np.tile(qdot, (len(v) - n + 1, 1)), atol=1e-12)
@@ -336,58 +342,104 @@ def test_stream_reaches_a_joint_velocity_at_the_acceleration_limit_between_ticks
 
 
 def test_a_moving_object_is_told_from_its_measurements_line():
-    """``_fast``: 1 s of measurements at 20 Hz moving at 0.1 m/s: moving; jittering 1 cm
+    """``is_fast``: 1 s of measurements at 20 Hz moving at 0.1 m/s: moving; jittering 1 cm
     around a point, or too short a history: not (the stream stays acceleration-limited);
     over 0.5 s, 0.07 m/s (a still object's measurements shifting as the camera comes
     closer): not, 0.2 m/s: moving."""
-    from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+    from mmpa.servo.config import TrackConfig
+    from mmpa.servo.tracker import is_fast
 
-    g = TrackingGrasp(None, default_robot(), GraspConfig())
+    cfg = TrackConfig()
     rng = np.random.default_rng(3)
     c = np.array([0.5, 0.0, -0.02])
     v = np.array([0.1, 0.0, 0.0])
     moving = [(0.05 * k, c + v * 0.05 * k + rng.normal(0, 0.005, 3)) for k in range(21)]
     still = [(0.05 * k, c + rng.normal(0, 0.01, 3) * [1, 1, 0.2]) for k in range(21)]
-    assert g._fast(moving) and not g._fast(still) and not g._fast(moving[-5:])
+    assert is_fast(moving, cfg) and not is_fast(still, cfg) and not is_fast(moving[-5:], cfg)
     # half the window: twice the speed needed (a still object's first measurements shift)
     shift = [(0.05 * k, c + np.array([0.0, 0.07, 0.0]) * 0.05 * k) for k in range(11)]
     fast = [(0.05 * k, c + np.array([0.0, 0.2, 0.0]) * 0.05 * k) for k in range(11)]
-    assert not g._fast(shift) and g._fast(fast)
+    assert not is_fast(shift, cfg) and is_fast(fast, cfg)
 
 
 def test_intercept_stream_meets_a_goal_moving_at_constant_velocity():
     """ "intercept": goals sent at 20 Hz (the goal at the tick, moving at ``v_goal``) are
-    streamed at ``servo_rate_hz`` along the online intercept: the set-points keep qd_max and
+    streamed at ``stream.rate_hz`` along the online intercept: the set-points keep qd_max and
     qdd_max (finite differences) and, after the catch-up, lie on the goal's line
     ``q_goal0 + v_goal t`` (closed form) at every sub-step."""
     from mmpa.robot.limits import path_accelerations, path_velocities
-    from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+    from mmpa.servo.config import GraspConfig
+    from mmpa.servo.pose import ArmGeometry
+    from mmpa.servo.stream import Stream
 
     rb = default_robot()
     q0 = np.array(rb.arm.home, float)
-    cfg = GraspConfig(stream_accel_limit="intercept")
-    g = TrackingGrasp(None, rb, cfg)
+    cfg = GraspConfig(stream={"accel_limit": "intercept"})
+    g = Stream(ArmGeometry.of(rb, cfg.stream.joint_margin), cfg.stream, cfg.intercept)
     clock = [0.0]
     arm = _RecordingArm(clock)
 
     def tick(duration, clock=clock):
         clock[0] += duration
 
-    g._clock = lambda clock=clock: clock[0]
-    g._set_limited(arm, True)
-    wait = g._streaming(arm, tick)
-    g._start_stream(q0)
+    g.clock = lambda clock=clock: clock[0]
+    g.set_limited(arm, True)
+    wait = g.streaming(arm, tick)
+    g.start(q0)
     q_goal0 = q0 + np.array([0.3, -0.2, 0.25, 0.1, -0.1, 0.2])
     v_goal = np.array([0.2, 0.1, -0.15, 0.0, 0.05, -0.1])
     for _ in range(40):  # 2 s at 20 Hz
-        g._send_intercept(q_goal0 + v_goal * clock[0], v_goal, 0.05)
+        g.send_intercept(q_goal0 + v_goal * clock[0], v_goal, 0.05)
         wait(0.05)
     t = np.array([0.0] + [s[0] + 0.01 for s in arm.sent])  # each set-point for its sub-step
     q = np.array([q0] + [s[1] for s in arm.sent])
-    np.testing.assert_allclose(np.diff(t), 1.0 / cfg.servo_rate_hz)
+    np.testing.assert_allclose(np.diff(t), 1.0 / cfg.stream.rate_hz)
     v = path_velocities(t, q)
     a = path_accelerations(t, q)
     assert np.max(np.abs(v) / np.asarray(rb.arm.qd_max)) <= 1 + 1e-6
     assert np.max(np.abs(a) / np.asarray(rb.arm.qdd_max)) <= 1 + 1e-6
     late = t >= 1.5
     np.testing.assert_allclose(q[late], q_goal0 + np.outer(t[late], v_goal), atol=1e-6)
+
+
+def test_paper_config_turns_the_improvements_off():
+    """``GraspConfig.paper()``: the paper's grasp in one place (no predictor, box center,
+    dark preprocessing, no second views, hold still when lost, an unlimited constant-speed
+    descent, one close); the defaults keep the improvements."""
+    from mmpa.servo.config import GraspConfig
+
+    p, d = GraspConfig.paper(), GraspConfig()
+    assert not p.track.use_predictor and not p.track.reacquire
+    assert p.detect.grasp_point == "box" and p.detect.preprocess_dark
+    assert p.search.views == [] and p.close.max_attempts == 1
+    assert p.stream.accel_limit == "never"
+    assert d.track.use_predictor and d.search.views and d.close.max_attempts == 3
+    assert GraspConfig.model_validate(p.model_dump()) == p
+
+
+def test_run_refuses_an_arm_without_streaming():
+    """The tracking grasp needs a StreamingArm: an arm with only the planned moves is
+    refused before anything moves (InvalidInputError naming the protocol)."""
+    from types import SimpleNamespace
+
+    from mmpa.servo.grasp import TrackingGrasp
+
+    class PlannedOnlyArm:
+        def __init__(self):
+            self.moved = False
+
+        def joint_positions(self):
+            return np.zeros(6)
+
+        def move_joints(self, q, duration=None):
+            self.moved = True
+
+        def follow(self, times, q_path, record_hz=None):
+            self.moved = True
+
+    det = SimpleNamespace(cfg=SimpleNamespace(classes=["cube"], score_threshold=0.3))
+    g = TrackingGrasp(det, default_robot())
+    arm = PlannedOnlyArm()
+    with pytest.raises(InvalidInputError, match="StreamingArm"):
+        g.run("cube", arm, None, None, None, lambda dt: None, lambda: 0.0)
+    assert not arm.moved

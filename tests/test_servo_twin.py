@@ -10,7 +10,8 @@ import pytest
 from mmpa.backends.twin.world import SimWorld
 from mmpa.core.errors import InvalidInputError, UnknownNameError
 from mmpa.experiments.paper001.grasp import Config, OracleDetector, grasp_trial, make_grasper
-from mmpa.servo.grasp import GraspConfig, TrackingGrasp
+from mmpa.servo.config import GraspConfig
+from mmpa.servo.grasp import TrackingGrasp
 
 
 @pytest.fixture(scope="module")
@@ -125,22 +126,22 @@ def _descent_after_unseen_turn(world, updates: bool, abort: float = 0.0):
 
     rb = _ball_under_the_look_view(world, 0.25)
     cfg = GraspConfig(
-        descend_updates=updates,
-        descend_speed=0.4,
-        stream_accel_limit="always",
-        descend_abort_innovation=abort,
+        descent={"updates": updates, "speed": 0.4, "abort_innovation": abort},
+        stream={"accel_limit": "always"},
     )
     g = TrackingGrasp(OracleDetector(world), rb, cfg)
     world.camera.set_resolution(*SERVO_RESOLUTION)
     try:
         q = world.arm.joint_positions()
-        _, meas = g._measure(world.camera.capture(), "tennis_ball", q, ConstantVelocityKF())
+        _, meas = g.perception.measure(
+            world.camera.capture(), "tennis_ball", q, ConstantVelocityKF()
+        )
         assert meas is not None  # the ball is in view
         kf = CountingKF(g.cfg.predictor)
         kf.update(meas.p)
         kf.x[3:] = [0.0, 0.2, 0.0]  # the unseen turn
         CountingKF.updates = 0
-        g._descend(
+        g.descent.descend(
             world.arm, q, kf, meas.p, meas.top_z, meas.desk_z, None, world.step,
             world.camera, "tennis_ball",
         )  # fmt: skip
@@ -162,12 +163,12 @@ def test_descent_detections_see_the_object_stopped(world):
 
 
 def test_an_acceleration_limited_descent_stops_on_a_turn(world):
-    """``descend_abort_innovation``: the first detection on the way down lies off the stale
+    """``descent.abort_innovation``: the first detection on the way down lies off the stale
     prediction by more than 5 mm (the ball stands still, the predictor believes 0.2 m/s):
     the descent stops there, the TCP still over 10 cm above the ball (truth), for the
     tracking to go on."""
     _, n, g = _descent_after_unseen_turn(world, updates=True, abort=0.005)
-    assert g.aborted and 1 <= n <= 3  # within the first detections
+    assert g.descent.aborted and 1 <= n <= 3  # within the first detections
     gap = world.truth.T_map_tcp()[2, 3] - world.truth.T_map_object("tennis_ball")[2, 3]
     assert gap > 0.1, gap
 
@@ -284,7 +285,9 @@ def test_second_view_finds_what_the_first_view_misses(world):
     """Improvement (second views): the bottle the first view misses is found from a second,
     more oblique view and grasped (held off the desk, physics); with no second views the
     robot waits at the first view and never finds it (the paper's behaviour)."""
-    res_0, lift_0 = _bottle_under_the_first_view(world, GraspConfig(search_views=[], max_time=2))
+    res_0, lift_0 = _bottle_under_the_first_view(
+        world, GraspConfig(search={"views": []}, max_time=2)
+    )
     assert res_0.reason == "not found" and not res_0.detected_first and res_0.views == 0
     assert abs(lift_0) < 0.01  # untouched
     res, lift = _bottle_under_the_first_view(world, GraspConfig(max_time=15))
@@ -315,13 +318,14 @@ def test_weak_detections_count_only_on_the_track(world):
         p_true = (T_B_map @ np.append(world.truth.T_map_object("tennis_ball")[:3, 3], 1.0))[:3]
         p_top = p_true + np.array([0.0, 0.0, 0.034])  # the ball's top center
         g = TrackingGrasp(UnsureOracle(world), rb, GraspConfig())
-        assert g._measure(frame, "tennis_ball", q)[1] is None  # no track: under the threshold
-        _, m = g._measure(frame, "tennis_ball", q, track=[p_top + np.array([0.02, 0.0, 0.0])])
+        measure = g.perception.measure
+        assert measure(frame, "tennis_ball", q)[1] is None  # no track: under the threshold
+        _, m = measure(frame, "tennis_ball", q, track=[p_top + np.array([0.02, 0.0, 0.0])])
         assert m is not None and np.linalg.norm(m.p[:2] - p_true[:2]) < 0.01, m
         off = [p_top + np.array([0.0, 0.2, 0.0])]  # a track 0.2 m away: not the object
-        assert g._measure(frame, "tennis_ball", q, track=off)[1] is None
-        g_off = TrackingGrasp(UnsureOracle(world), rb, GraspConfig(track_score=0.3))
-        assert g_off._measure(frame, "tennis_ball", q, track=[p_top])[1] is None
+        assert measure(frame, "tennis_ball", q, track=off)[1] is None
+        g_off = TrackingGrasp(UnsureOracle(world), rb, GraspConfig(detect={"track_score": 0.3}))
+        assert g_off.perception.measure(frame, "tennis_ball", q, track=[p_top])[1] is None
     finally:
         world.camera.set_resolution(640, 480)
 
@@ -395,9 +399,9 @@ def test_a_still_object_lost_on_the_approach_is_grasped_on_its_line(world, still
     """The detector goes blind 1.2 s into the approach of the static ball: with
     ``still_coast`` the arm keeps servoing on the ball's least-squares line and grasps it
     (held, physics); without, it waits for the ball to reappear until the timeout."""
-    g = make_grasper(Config(weights="oracle", max_time=8.0), world)
-    g.cfg = g.cfg.model_copy(update={"still_coast": still_coast})
-    g.det = _GoesBlind(g.det, 24)
+    servo = GraspConfig(track={"still_coast": still_coast})
+    g = make_grasper(Config(weights="oracle", max_time=8.0, servo=servo), world)
+    g.perception.det = _GoesBlind(g.det, 24)
     row = grasp_trial(world, g, "tennis_ball", "normal", np.random.default_rng(0))
     assert row["detected"]
     if still_coast > 0:
@@ -410,7 +414,7 @@ def test_a_still_object_lost_on_the_approach_is_grasped_on_its_line(world, still
 @pytest.mark.parametrize("attempts", [1, 3])
 def test_a_missed_grasp_is_tried_again(world, attempts):
     """The ball is snatched 12 cm aside as the gripper starts to close, which then closes on
-    nothing. With ``max_attempts`` 3 the gripper opens, the arm tracks the ball again and
+    nothing. With ``close.max_attempts`` 3 the gripper opens, the arm tracks the ball again and
     the second attempt holds it (physics: off the desk 2 s later, between the fingers); with
     one attempt the run ends "missed"."""
     from mmpa.experiments.paper001.grasp import LOOK_HEIGHT, SERVO_RESOLUTION, held_in_the_physics
@@ -418,7 +422,9 @@ def test_a_missed_grasp_is_tried_again(world, attempts):
     rb = _ball_under_the_look_view(world, LOOK_HEIGHT)
     top = world.scene.grasp_desk.size[2]
     T_map_B = world.truth.T_map_arm_base()
-    g = TrackingGrasp(OracleDetector(world), rb, GraspConfig(max_attempts=attempts, max_time=15.0))
+    g = TrackingGrasp(
+        OracleDetector(world), rb, GraspConfig(close={"max_attempts": attempts}, max_time=15.0)
+    )
     events: list[str] = []
 
     def on_event(e: str) -> None:
@@ -535,7 +541,7 @@ def test_grasp_streams_within_the_joint_velocity_and_acceleration_limits(world, 
     every 2 ms step) stay within qd_max and qdd_max through the whole trial, the grasp
     controller's own command stream keeps them too (``check_path`` on its segments, each
     command at its time), and the grasp still holds the ball (physics) with the gripper
-    closed within 1 cm of its true center. The default ``stream_accel_limit`` ("still")
+    closed within 1 cm of its true center. The default ``stream.accel_limit`` ("still")
     keeps the arm's stream acceleration-limited for a still object."""
     arm = world.arm
     lim = arm.limits
@@ -544,7 +550,7 @@ def test_grasp_streams_within_the_joint_velocity_and_acceleration_limits(world, 
     steps, sent, _ = _record_streams(world, monkeypatch)
     row = grasp_trial(world, g, "tennis_ball", "normal", np.random.default_rng(0))
     monkeypatch.undo()
-    assert g.cfg.stream_accel_limit == "still"  # the default: limited for a still object
+    assert g.cfg.stream.accel_limit == "still"  # the default: limited for a still object
     assert arm.stream_acceleration_limited and g.limited
     assert row["grasped"], row
     assert np.hypot(row["close_dx"], row["close_dy"]) < 0.010, row
@@ -552,10 +558,10 @@ def test_grasp_streams_within_the_joint_velocity_and_acceleration_limits(world, 
 
 
 def test_moving_ball_grasp_by_default_streams_within_the_hard_stream_limit(world, monkeypatch):
-    """Issue 22, moving objects under the default ``stream_accel_limit="still"``: while the
+    """Issue 22, moving objects under the default ``stream.accel_limit="still"``: while the
     ball moves (0.1 m/s) the stream is not held to qdd_max, but the set-points the physics
     applies (``d.ctrl``, every 2 ms step) and the grasp's own command stream (streamed at
-    ``servo_rate_hz``) stay within qd_max and the arm's hard stream limit qdd_stream_max
+    ``stream.rate_hz``) stay within qd_max and the arm's hard stream limit qdd_stream_max
     (40 rad/s^2; without it this trial reached 74.6 rad/s^2 at ``d.ctrl``)."""
     arm = world.arm
     lim = arm.limits
@@ -570,17 +576,17 @@ def test_moving_ball_grasp_by_default_streams_within_the_hard_stream_limit(world
 
 
 def test_moving_ball_grasp_streams_within_the_limits_by_the_intercept(world, monkeypatch):
-    """Issue 22, moving objects: with ``stream_accel_limit="intercept"`` a tracking grasp of
+    """Issue 22, moving objects: with ``stream.accel_limit="intercept"`` a tracking grasp of
     the ball moved at 0.1 m/s keeps the arm's stream acceleration-limited throughout (the
     arm's own limiter never switched off), follows the object by the online intercept
     (tracking and descent), and the set-points the physics applies (``d.ctrl``, every 2 ms
     step) and the controller's own command stream stay within qd_max and qdd_max."""
     arm = world.arm
     lim = arm.limits
-    servo = GraspConfig(stream_accel_limit="intercept", max_attempts=1)
+    servo = GraspConfig(stream={"accel_limit": "intercept"}, close={"max_attempts": 1})
     g = make_grasper(Config(weights="oracle", use_predictor=True, servo=servo), world)
     calls = {"intercept": 0, "descend": 0}
-    real_si, real_di = g._send_intercept, g._descend_intercept
+    real_si, real_di = g.stream.send_intercept, g.descent.descend_intercept
 
     def send_intercept(*a, **k):
         calls["intercept"] += 1
@@ -590,14 +596,14 @@ def test_moving_ball_grasp_streams_within_the_limits_by_the_intercept(world, mon
         calls["descend"] += 1
         return real_di(*a, **k)
 
-    monkeypatch.setattr(g, "_send_intercept", send_intercept)
-    monkeypatch.setattr(g, "_descend_intercept", descend_intercept)
+    monkeypatch.setattr(g.stream, "send_intercept", send_intercept)
+    monkeypatch.setattr(g.descent, "descend_intercept", descend_intercept)
     steps, sent, limited = _record_streams(world, monkeypatch)
     rng = np.random.default_rng([0, 100])
     row = grasp_trial(world, g, "tennis_ball", "normal", rng, speed=0.1, others=1)
     monkeypatch.undo()
     # it got as far as closing the gripper (whether it holds the ball: the experiment's
-    # figures, ``mmpa.servo.grasp``; this trial misses by 8 cm)
+    # figures, ``docs/servo.md``; this trial misses by 8 cm)
     assert row["reason"] in ("grasped", "missed", "dropped"), row
     assert calls["descend"] >= 1 and calls["intercept"] > 50, calls
     assert limited and all(limited)  # the arm's stream limiter stayed on

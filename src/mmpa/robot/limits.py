@@ -80,7 +80,7 @@ class StreamLimitsSwitch:
     (the default) keeps the streamed set-points within ``qdd_max`` (``stream_limits`` =
     ``limits``), False within the hard stream limit ``qdd_stream_max``
     (:meth:`JointLimits.stream`). The tracking grasp sets it from its config
-    (``GraspConfig.stream_accel_limit``)."""
+    (``GraspConfig.stream.accel_limit``)."""
 
     limits: JointLimits
     stream_limits: JointLimits

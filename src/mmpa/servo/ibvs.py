@@ -48,9 +48,8 @@ __all__ = [
 class IBVSConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
     gain: float = Field(1.5, gt=0)  # lambda (1/s), static or slow objects
-    # lambda (1/s) for an object the predictor sees moving (GraspConfig.
-    # final_standoff_max_speed): 1.5 lost objects at 0.2 m/s; 3.0 on a static paper cup
-    # overshoots and knocks it (10 trials, normal light: 1/10 grasped vs 10/10 at 1.5)
+    # lambda (1/s) for an object the predictor sees moving (GraspConfig.track.
+    # final_standoff_max_speed; measured: docs/servo.md)
     moving_gain: float = Field(3.0, gt=0)
     orientation_gain: float = Field(2.0, gt=0)  # 1/s
     standoff: float = Field(0.25, gt=0)  # m, tracking height of the TCP above the object

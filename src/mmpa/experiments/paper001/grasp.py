@@ -7,7 +7,7 @@ desk, the light is set, the arm looks down at the desk; then the tracking grasp
 (:class:`mmpa.servo.grasp.TrackingGrasp`) detects, servos, descends, closes and lifts.
 Detection success: the target is detected in the first frame (``found_view`` in the rows: 0
 the first view, k >= 1 after k second views, -1 never; ``views``: second views taken, see
-``GraspConfig.search_views``). Grasp success: after the lift the object is still held off the
+``GraspConfig.search.views``). Grasp success: after the lift the object is still held off the
 desk 2 s later, in the physics (not a distance threshold).
 """
 
@@ -40,7 +40,8 @@ from mmpa.harness.recording import recording_folder, trial_recorder
 from mmpa.harness.runner import Context, Outcome, markdown_table, run_trials
 from mmpa.perception import CLASSES, LIGHTING_CONDITIONS
 from mmpa.robot.description import default_robot
-from mmpa.servo.grasp import GraspConfig, TrackingGrasp, look_configuration
+from mmpa.servo.config import GraspConfig
+from mmpa.servo.grasp import TrackingGrasp, look_configuration
 
 PAPER = "paper 001 Table 3 (success rate per object and light condition, 20 trials each)"
 
@@ -415,10 +416,11 @@ def make_grasper(cfg: Any, world: Any = None) -> Any:
 
         torch.set_num_threads(getattr(cfg, "threads", 1))
         det = Detector.load(cfg.weights)
-    gc = (getattr(cfg, "servo", None) or GraspConfig()).model_copy(
+    gc = getattr(cfg, "servo", None) or GraspConfig()
+    gc = gc.model_copy(
         update={
-            "preprocess_dark": cfg.preprocess_dark,
-            "use_predictor": cfg.use_predictor,
+            "detect": gc.detect.model_copy(update={"preprocess_dark": cfg.preprocess_dark}),
+            "track": gc.track.model_copy(update={"use_predictor": cfg.use_predictor}),
             "max_time": getattr(cfg, "max_time", 15.0),
         }
     )
@@ -547,7 +549,7 @@ def run(cfg: Config, ctx: Context, progress: Callable[[str, float], None] | None
         f"{n} trials per object and light condition (seed {cfg.seed}); detection = target "
         "found in the first frame; grasp = held off the desk 2 s after the lift (physics), "
         "after at most "
-        f"{cfg.servo.max_attempts} attempts (a missed grasp is tried "
+        f"{cfg.servo.close.max_attempts} attempts (a missed grasp is tried "
         "again). Paper: Table 3 success rate (20 trials each).\n\n"
         + markdown_table(header, table, digits=2)
         + f"\nGrasped at the first attempt: {summary['first_attempt']:.3f} of all trials "

@@ -22,7 +22,7 @@ from mmpa.experiments.paper001.grasp import Config as GraspExperimentConfig
 from mmpa.experiments.paper001.grasp import grasp_trial, recorded, run_jobs, twin_for
 from mmpa.harness.recording import recording_folder
 from mmpa.harness.runner import Context, Outcome, markdown_table
-from mmpa.servo.grasp import GraspConfig
+from mmpa.servo.config import GraspConfig
 
 PAPER = "paper 001 §4.3.3 (tracking grasp of a moving object; works below 0.1 m/s)"
 PAPER_LIMIT = 0.1  # m/s
@@ -123,8 +123,8 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         f"{cfg.object}, {n} trials per speed and setting (seed {cfg.seed}), detector "
         f"{cfg.weights or 'shipped'}; the operator turns by 30-90 deg every 0.5-1.5 s and lets "
         "go when the gripper closes; after a missed grasp it takes the object again and goes "
-        f"on (at most {cfg.servo.max_attempts} attempts in {cfg.max_time:g} s). Success = held "
-        "off the desk 2 s after the lift; first attempt = held after a single close (the "
+        f"on (at most {cfg.servo.close.max_attempts} attempts in {cfg.max_time:g} s). Success = "
+        "held off the desk 2 s after the lift; first attempt = held after a single close (the "
         f"paper's way). The paper's limit ({PAPER_LIMIT} m/s) is marked in the plot.\n\n"
         + markdown_table(header, table, digits=2)
         + "\nFailure classes (truth: see mmpa.experiments.paper001.grasp._Probe):\n"
