@@ -206,18 +206,61 @@ def navigate(
     the evaluation; None on a real robot) is read only for the evaluation trace and
     ``final_truth`` (NaN without a truth).
     """
-    truth_pose = truth
-    no_truth = np.full(3, np.nan)
     cfg = cfg or NavigateConfig()
     goal = np.asarray(goal, float).reshape(3)
-    dt = 1.0 / cfg.control_rate
-    scan_every = max(1, round(cfg.control_rate / cfg.scan_rate))
-    t0 = world.time
-    keys = ("t", "truth", "estimate", "reflectors", "ok", "explained")
-    trace: dict[str, list[Any]] = {k: [] for k in keys}
-    tick = 0
+    d = _Drive(world, localizer, cfg, on_tick, truth)
+    est = d.stationary(cfg.initial_scans) if cfg.initial_scans else d.sense(force=True)
+    cm = costmap or CostMap(grid, cfg.planner)
+    path = staged_path(cm, est[:2], goal, cfg.staging_distance, cfg.planner)
+    follower = PathFollower(path, goal, cfg.follower)
+    total = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1))) or 1.0
+    reached, reason, corrections, settled = _follow(d, follower, goal, total, progress)
+    world.base.stop()
+    world.step(0.2)
+    final_est = localizer.pose_at(world.odometry.odometry().pose)
+    if not reached:
+        reason += _how_far(final_est, goal, cfg)
+    return NavigationResult(
+        reached=reached,
+        goal=goal,
+        final_truth=truth() if truth else d.no_truth,
+        final_estimate=final_est,
+        sim_time=world.time - d.t0,
+        path=path,
+        trace={k: np.asarray(v) for k, v in d.trace.items()},
+        reason=reason,
+        corrections=corrections,
+        settled_estimate=settled,
+    )
 
-    def sense(force: bool = False) -> Array:
+
+class _Drive:
+    """A drive's clock, sensing and trace: scans into the localizer every ``scan_every``
+    control ticks of ``dt`` s; the trace records time, truth (evaluation only), estimate,
+    reflectors seen and the localizer's health verdict at every scan."""
+
+    KEYS = ("t", "truth", "estimate", "reflectors", "ok", "explained")
+
+    def __init__(
+        self,
+        world: MobileRobot,
+        localizer: Localizer,
+        cfg: NavigateConfig,
+        on_tick: Callable[[Any, float], None] | None,
+        truth: Callable[[], Array] | None,
+    ) -> None:
+        self.world, self.localizer, self.cfg = world, localizer, cfg
+        self.on_tick, self.truth = on_tick, truth
+        self.no_truth = np.full(3, np.nan)
+        self.dt = 1.0 / cfg.control_rate
+        self.scan_every = max(1, round(cfg.control_rate / cfg.scan_rate))
+        self.t0 = world.time
+        self.trace: dict[str, list[Any]] = {k: [] for k in self.KEYS}
+        self.tick = 0
+
+    def sense(self, force: bool = False) -> Array:
+        """One scan into the localizer; the estimate at the current odometry."""
+        world, localizer, trace = self.world, self.localizer, self.trace
         odom = world.odometry.odometry().pose
         scan = world.lidar.scan()
         pe = localizer.update(odom, scan, force=force)
@@ -225,44 +268,52 @@ def navigate(
         # the localizer's own verdict (mmpa.localization.health): ok and the explained share
         trace["ok"].append(bool(getattr(pe, "ok", True)))
         trace["explained"].append(float(getattr(getattr(pe, "health", None), "explained", np.nan)))
-        trace["t"].append(world.time - t0)
-        trace["truth"].append(truth_pose() if truth_pose else no_truth)  # evaluation only
+        trace["t"].append(world.time - self.t0)
+        trace["truth"].append(self.truth() if self.truth else self.no_truth)  # evaluation only
         trace["estimate"].append(est)
         obs = getattr(localizer, "observer", None)
         trace["reflectors"].append(len(obs.last_detections) if obs is not None else -1)
         return est
 
-    def advance() -> None:
-        nonlocal tick
-        if on_tick is not None:
-            on_tick(world, world.time - t0)
-        world.step(dt)
-        tick += 1
+    def advance(self) -> None:
+        """One control tick of the clock (``on_tick`` first)."""
+        if self.on_tick is not None:
+            self.on_tick(self.world, self.world.time - self.t0)
+        self.world.step(self.dt)
+        self.tick += 1
 
-    def stationary(n: int) -> Array:
-        world.base.stop()
-        est = localizer.pose_at(world.odometry.odometry().pose)
+    def stationary(self, n: int) -> Array:
+        """Stop and take ``n`` scans standing; the last estimate."""
+        self.world.base.stop()
+        est = self.localizer.pose_at(self.world.odometry.odometry().pose)
         for _ in range(n):
-            for _ in range(scan_every):
-                advance()
-            est = sense(force=False)
+            for _ in range(self.scan_every):
+                self.advance()
+            est = self.sense(force=False)
         return est
 
-    est = stationary(cfg.initial_scans) if cfg.initial_scans else sense(force=True)
-    cm = costmap or CostMap(grid, cfg.planner)
-    path = staged_path(cm, est[:2], goal, cfg.staging_distance, cfg.planner)
-    follower = PathFollower(path, goal, cfg.follower)
-    total = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1))) or 1.0
+
+def _follow(
+    d: _Drive,
+    follower: PathFollower,
+    goal: Array,
+    total: float,
+    progress: Callable[[str, float], None] | None,
+) -> tuple[bool, str, int, Array]:
+    """Follow the plan to ``goal`` on the estimate, settle and re-check (up to
+    ``max_corrections`` times) until reached, the final approach's timeout or the drive's.
+    Returns ``(reached, reason, corrections, settled estimate)``."""
+    world, cfg = d.world, d.cfg
     reached = False
     corrections = 0
     settled = np.full(3, np.nan)
     reason = f"navigation timed out after {cfg.timeout:g} s"
     final_t0: float | None = None
     fin = cfg.follower.final
-    while world.time - t0 < cfg.timeout:
-        if tick % scan_every == 0:
-            sense()
-        est = localizer.pose_at(world.odometry.odometry().pose)
+    while world.time - d.t0 < cfg.timeout:
+        if d.tick % d.scan_every == 0:
+            d.sense()
+        est = d.localizer.pose_at(world.odometry.odometry().pose)
         v, w, done = follower.command(est)
         if follower.final_phase and final_t0 is None:
             final_t0 = world.time
@@ -270,7 +321,7 @@ def navigate(
             reason = f"the final approach timed out after {cfg.follower.final_timeout:g} s"
             break
         if done:
-            settled = est = stationary(cfg.settle_scans)
+            settled = est = d.stationary(cfg.settle_scans)
             ok = within_tolerance(est, goal, fin, cfg.settle_scale)
             if ok or corrections >= cfg.max_corrections:
                 reached = bool(ok)  # corrections used up out of tolerance: not reached
@@ -280,23 +331,7 @@ def navigate(
             follower.restart_final(est)
             continue
         world.base.set_velocity(v, w)
-        advance()
-        if progress is not None and tick % 20 == 0:
+        d.advance()
+        if progress is not None and d.tick % 20 == 0:
             progress("driving", 1.0 - float(np.hypot(*(goal[:2] - est[:2]))) / total)
-    world.base.stop()
-    world.step(0.2)
-    final_est = localizer.pose_at(world.odometry.odometry().pose)
-    if not reached:
-        reason += _how_far(final_est, goal, cfg)
-    return NavigationResult(
-        reached=reached,
-        goal=goal,
-        final_truth=truth_pose() if truth_pose else no_truth,
-        final_estimate=final_est,
-        sim_time=world.time - t0,
-        path=path,
-        trace={k: np.asarray(v) for k, v in trace.items()},
-        reason=reason,
-        corrections=corrections,
-        settled_estimate=settled,
-    )
+    return reached, reason, corrections, settled
