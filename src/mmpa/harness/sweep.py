@@ -51,6 +51,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from mmpa.core.config import load_config
@@ -397,11 +399,6 @@ def _plot(
     metrics: list[str],
     path: Path,
 ) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     numeric = all(isinstance(v, int | float) and not isinstance(v, bool) for v in values)
     order = {json.dumps(v, sort_keys=True): i for i, v in enumerate(values)}
 
@@ -411,7 +408,9 @@ def _plot(
     n = max(1, len(metrics))
     cols = min(3, n)
     nrows = math.ceil(n / cols)
-    fig, axes = plt.subplots(nrows, cols, figsize=(4.2 * cols, 3.4 * nrows), squeeze=False)
+    fig = Figure(figsize=(4.2 * cols, 3.4 * nrows))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrows, cols, squeeze=False)
     groups: dict[str, list[dict[str, Any]]] = {}
     for r in rows:
         key = f"{r['experiment']} s{r['seed']}" + "".join(
@@ -439,7 +438,6 @@ def _plot(
     fig.suptitle(f"mmpa sweep: {f}")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def _finished(mod: Any, p: SweepPoint, trials: int | None, folder: Path) -> bool:
