@@ -101,9 +101,10 @@ def test_kidnap_trial_does_not_depend_on_what_ran_before(monkeypatch) -> None:
     import numpy as np
 
     from mmpa.experiments.paper001 import localization as loc_exp
+    from mmpa.harness import twin_localization
 
     estimates: list[np.ndarray] = []
-    make = loc_exp.make_localizer
+    make = twin_localization.make_localizer  # what twin_localizer() builds with
 
     def recording(*args, **kwargs):
         loc = make(*args, **kwargs)
@@ -117,7 +118,7 @@ def test_kidnap_trial_does_not_depend_on_what_ran_before(monkeypatch) -> None:
         loc.update = update_and_record
         return loc
 
-    monkeypatch.setattr(loc_exp, "make_localizer", recording)
+    monkeypatch.setattr(twin_localization, "make_localizer", recording)
     cfg = loc_exp.Config(kidnap_duration=2.0)
 
     def kidnap(k: int, method: str) -> tuple[float, np.ndarray]:
