@@ -258,6 +258,117 @@ class JointCalibrationResult:
         }
 
 
+def _check_inputs(K: Array, X0: Array, Y0: Array, obs: BoardObservations) -> None:
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InvalidInputError(f"K must be a finite 3x3 camera matrix, got shape {K.shape}")
+    for name, T in (("X0", X0), ("Y0", Y0)):
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise InvalidInputError(f"{name} must be a finite 4x4 transform, got {T.shape}")
+    if obs.n_stations < 3:
+        raise InvalidInputError(
+            f"joint calibration needs at least 3 stations, got {obs.n_stations}"
+        )
+
+
+class _JointProblem:
+    """The MAP problem in scaled units (module docstring): the parameter vector ``x`` is the
+    24 scaled DH corrections, the hand-eye and board updates (6 + 6), and with per-station
+    displacement priors 6 per station; :meth:`residuals` stacks the corner residuals
+    (``/ pixel_sigma``) and the prior rows."""
+
+    def __init__(
+        self,
+        dh_nominal: DHParameters,
+        obs: BoardObservations,
+        K: Array,
+        X0: Array,
+        Y0: Array,
+        cfg: JointCalibrationConfig,
+    ) -> None:
+        self.cfg, self.K, self.X0, self.Y0 = cfg, K, X0, Y0
+        self.q = np.asarray(obs.q, float)
+        self.sid = np.asarray(obs.station, int)
+        self.P = np.asarray(obs.object_points, float)
+        self.uv = np.asarray(obs.image_points, float)
+        self.a0, self.d0, self.al0, self.th0 = dh_nominal.as_arrays()
+        s_len = cfg.prior_length_sigma_mm * 1e-3
+        s_ang = np.deg2rad(cfg.prior_angle_sigma_deg)
+        self.sig = np.concatenate(
+            [np.full(6, s_len if is_len else s_ang) for is_len in _LENGTH]
+        )  # (24,)
+        self.n_st = obs.n_stations
+        self.per_station = cfg.station_rot_sigma_deg > 0 or cfg.station_shift_sigma_mm > 0
+        self.n_par = 36 + (6 * self.n_st if self.per_station else 0)
+        # per-station arm-base displacement D_i = [R(w_i) | t_i] in scaled units
+        self.s_st = np.array(
+            [cfg.station_shift_sigma_mm * 1e-3] * 3 + [np.deg2rad(cfg.station_rot_sigma_deg)] * 3
+        )
+
+    def unpack(self, x: Array) -> tuple[Array, Array, Array]:
+        delta = x[:24] * self.sig
+        return delta, self.X0 @ _small_T(x[24:30]), self.Y0 @ _small_T(x[30:36])
+
+    def predict(self, x: Array) -> Array:
+        """The corners in the camera frame (M, 3) m."""
+        delta, X, Y = self.unpack(x)
+        dth, da, dd, dal = delta.reshape(4, 6)
+        a0, d0, al0, th0 = self.a0, self.d0, self.al0, self.th0
+        G = fk_batch(a0 + da, d0 + dd, al0 + dal, th0 + dth, self.q) @ X  # T_base_camera (N,4,4)
+        if self.per_station:
+            n_st = self.n_st
+            v = x[36:].reshape(n_st, 6) * self.s_st
+            D = np.broadcast_to(np.eye(4), (n_st, 4, 4)).copy()
+            D[:, :3, :3] = Rotation.from_rotvec(v[:, 3:]).as_matrix()
+            D[:, :3, 3] = v[:, :3]
+            G = D @ G
+        R = np.swapaxes(G[:, :3, :3], 1, 2)  # camera <- base
+        t = -np.einsum("nij,nj->ni", R, G[:, :3, 3])
+        pb = self.P @ Y[:3, :3].T + Y[:3, 3]  # board -> base (M, 3)
+        pc = np.einsum("mij,mj->mi", R[self.sid], pb) + t[self.sid]
+        return pc
+
+    def residuals(self, x: Array) -> Array:
+        pc = self.predict(x)
+        pc[:, 2] = np.maximum(pc[:, 2], 1e-6)
+        u = project(self.K, pc)
+        return np.concatenate([((u - self.uv) / self.cfg.pixel_sigma).ravel(), x[:24], x[36:]])
+
+    def sparsity(self) -> Array | None:
+        """The Jacobian's sparsity with per-station priors (a station's displacement moves
+        only its own corners); None without them."""
+        if not self.per_station:
+            return None
+        m, n_par, n_st = 2 * len(self.P), self.n_par, self.n_st
+        sparsity = np.ones((m + n_par - 12, n_par), dtype=bool)
+        rows = np.repeat(self.sid, 2)
+        sparsity[:m, 36:] = rows[:, None] == np.repeat(np.arange(n_st), 6)[None, :]
+        sparsity[m:, :] = False
+        prior_cols = np.r_[np.arange(24), np.arange(36, n_par)]
+        sparsity[m + np.arange(len(prior_cols)), prior_cols] = True
+        return sparsity
+
+
+def _posterior(J: Array, n_par: int) -> tuple[Array, Array, Array]:
+    """From the stacked Jacobian ``J`` (scaled units): the posterior SDs of all parameters,
+    the singular values of the data's information on the DH corrections, and the hand-eye's
+    SD (6,) with the unobservable DH directions held."""
+    # posterior covariance (scaled units) of the stacked data + prior system
+    JtJ = J.T @ J
+    cov = np.linalg.pinv(JtJ)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    # the data's information on the DH corrections (scaled units), the other unknowns
+    # marginalised with their priors: Schur complement of J^T J minus the DH prior (I)
+    Hn = JtJ[24:, 24:]
+    H_dh = JtJ[:24, :24] - JtJ[:24, 24:] @ np.linalg.pinv(Hn) @ JtJ[24:, :24] - np.eye(24)
+    sv = np.sqrt(np.clip(np.sort(np.linalg.eigvalsh((H_dh + H_dh.T) / 2))[::-1], 0.0, None))
+    # the hand-eye's SD with the exactly unobservable DH directions held (the gauge: the
+    # flange is the nominal last link's, the base frame the nominal first joint's)
+    keep = np.setdiff1d(np.arange(n_par), GAUGE_INDICES)
+    cov_g = np.linalg.inv(JtJ[np.ix_(keep, keep)])
+    sd_g = np.sqrt(np.clip(np.diag(cov_g), 0.0, None))[16:22]
+    return sd, sv, sd_g
+
+
 def calibrate_kinematics_hand_eye(
     dh_nominal: DHParameters,
     obs: BoardObservations,
@@ -274,74 +385,17 @@ def calibrate_kinematics_hand_eye(
     cfg = config or JointCalibrationConfig()
     K = np.asarray(K, float)
     X0, Y0 = np.asarray(X0, float), np.asarray(Y0, float)
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise InvalidInputError(f"K must be a finite 3x3 camera matrix, got shape {K.shape}")
-    for name, T in (("X0", X0), ("Y0", Y0)):
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise InvalidInputError(f"{name} must be a finite 4x4 transform, got {T.shape}")
-    if obs.n_stations < 3:
-        raise InvalidInputError(
-            f"joint calibration needs at least 3 stations, got {obs.n_stations}"
-        )
-    q = np.asarray(obs.q, float)
-    sid = np.asarray(obs.station, int)
-    P = np.asarray(obs.object_points, float)
-    uv = np.asarray(obs.image_points, float)
-    a0, d0, al0, th0 = dh_nominal.as_arrays()
-    s_len = cfg.prior_length_sigma_mm * 1e-3
-    s_ang = np.deg2rad(cfg.prior_angle_sigma_deg)
-    sig = np.concatenate([np.full(6, s_len if is_len else s_ang) for is_len in _LENGTH])  # (24,)
-    n_st = obs.n_stations
-    per_station = cfg.station_rot_sigma_deg > 0 or cfg.station_shift_sigma_mm > 0
-    n_par = 36 + (6 * n_st if per_station else 0)
-    # per-station arm-base displacement D_i = [R(w_i) | t_i] in scaled units
-    s_st = np.array(
-        [cfg.station_shift_sigma_mm * 1e-3] * 3 + [np.deg2rad(cfg.station_rot_sigma_deg)] * 3
-    )
-
-    def unpack(x: Array) -> tuple[Array, Array, Array]:
-        delta = x[:24] * sig
-        return delta, X0 @ _small_T(x[24:30]), Y0 @ _small_T(x[30:36])
-
-    def predict(x: Array) -> Array:
-        delta, X, Y = unpack(x)
-        dth, da, dd, dal = delta.reshape(4, 6)
-        G = fk_batch(a0 + da, d0 + dd, al0 + dal, th0 + dth, q) @ X  # T_base_camera (N,4,4)
-        if per_station:
-            v = x[36:].reshape(n_st, 6) * s_st
-            D = np.broadcast_to(np.eye(4), (n_st, 4, 4)).copy()
-            D[:, :3, :3] = Rotation.from_rotvec(v[:, 3:]).as_matrix()
-            D[:, :3, 3] = v[:, :3]
-            G = D @ G
-        R = np.swapaxes(G[:, :3, :3], 1, 2)  # camera <- base
-        t = -np.einsum("nij,nj->ni", R, G[:, :3, 3])
-        pb = P @ Y[:3, :3].T + Y[:3, 3]  # board -> base (M, 3)
-        pc = np.einsum("mij,mj->mi", R[sid], pb) + t[sid]
-        return pc
-
-    def residuals(x: Array) -> Array:
-        pc = predict(x)
-        pc[:, 2] = np.maximum(pc[:, 2], 1e-6)
-        u = project(K, pc)
-        return np.concatenate([((u - uv) / cfg.pixel_sigma).ravel(), x[:24], x[36:]])
-
-    x0 = np.zeros(n_par)
-    if np.any(predict(x0)[:, 2] <= 0):
+    _check_inputs(K, X0, Y0, obs)
+    pr = _JointProblem(dh_nominal, obs, K, X0, Y0, cfg)
+    x0 = np.zeros(pr.n_par)
+    if np.any(pr.predict(x0)[:, 2] <= 0):
         raise InvalidInputError("board corners behind the camera at the start: check X0 and Y0")
-    m = 2 * len(P)
-    r0 = residuals(x0)[:m] * cfg.pixel_sigma
-    sparsity = None
-    if per_station:  # a station's displacement moves only its own corners
-        sparsity = np.ones((m + n_par - 12, n_par), dtype=bool)
-        rows = np.repeat(sid, 2)
-        sparsity[:m, 36:] = rows[:, None] == np.repeat(np.arange(n_st), 6)[None, :]
-        sparsity[m:, :] = False
-        prior_cols = np.r_[np.arange(24), np.arange(36, n_par)]
-        sparsity[m + np.arange(len(prior_cols)), prior_cols] = True
+    m = 2 * len(pr.P)
+    r0 = pr.residuals(x0)[:m] * cfg.pixel_sigma
     sol = least_squares(
-        residuals,
+        pr.residuals,
         x0,
-        jac_sparsity=sparsity,
+        jac_sparsity=pr.sparsity(),
         method="trf",
         loss=cfg.loss,
         f_scale=3.0,
@@ -356,25 +410,12 @@ def calibrate_kinematics_hand_eye(
     x = sol.x
     J = sol.jac  # rows of the scaled residuals; robust loss folded in by scipy
     J = np.asarray(J.toarray() if hasattr(J, "toarray") else J)
-    r = residuals(x)[:m] * cfg.pixel_sigma
+    r = pr.residuals(x)[:m] * cfg.pixel_sigma
     e = np.linalg.norm(r.reshape(-1, 2), axis=1)
-    # posterior covariance (scaled units) of the stacked data + prior system
-    JtJ = J.T @ J
-    cov = np.linalg.pinv(JtJ)
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    # the data's information on the DH corrections (scaled units), the other unknowns
-    # marginalised with their priors: Schur complement of J^T J minus the DH prior (I)
-    Hn = JtJ[24:, 24:]
-    H_dh = JtJ[:24, :24] - JtJ[:24, 24:] @ np.linalg.pinv(Hn) @ JtJ[24:, :24] - np.eye(24)
-    sv = np.sqrt(np.clip(np.sort(np.linalg.eigvalsh((H_dh + H_dh.T) / 2))[::-1], 0.0, None))
-    # the hand-eye's SD with the exactly unobservable DH directions held (the gauge: the
-    # flange is the nominal last link's, the base frame the nominal first joint's)
-    keep = np.setdiff1d(np.arange(n_par), GAUGE_INDICES)
-    cov_g = np.linalg.inv(JtJ[np.ix_(keep, keep)])
-    sd_g = np.sqrt(np.clip(np.diag(cov_g), 0.0, None))[16:22]
-    delta, X, Y = unpack(x)
+    sd, sv, sd_g = _posterior(J, pr.n_par)
+    delta, X, Y = pr.unpack(x)
     groups = delta.reshape(4, 6)
-    sd_groups = (sd[:24] * sig).reshape(4, 6)
+    sd_groups = (sd[:24] * pr.sig).reshape(4, 6)
     ratio = sd[:24].reshape(4, 6)
     dh = apply_dh_deltas(dh_nominal, dict(zip(DH_GROUPS, groups, strict=True)))
     return JointCalibrationResult(
@@ -385,7 +426,7 @@ def calibrate_kinematics_hand_eye(
         rms_px_start=float(np.sqrt(np.mean(np.sum(r0.reshape(-1, 2) ** 2, axis=1)))),
         rms_px=float(np.sqrt(np.mean(e**2))),
         max_px=float(e.max()),
-        n_observations=len(P),
+        n_observations=len(pr.P),
         n_stations=obs.n_stations,
         posterior_sd={k: sd_groups[i] for i, k in enumerate(DH_GROUPS)},
         sd_ratio={k: ratio[i] for i, k in enumerate(DH_GROUPS)},

@@ -40,11 +40,11 @@ Steps (:func:`survey_reflectors`):
    ``z + beta z / |z|``, ``z = R(phi_L)^T (p - t_L)``. The poses' priors fix the gauge;
    the reflectors' layout follows the lidar's geometry, not each pose's error.
 
-Also here: :func:`match_scan_to_map` on :func:`signed_distance_map` (a standing stop's
-mean scan onto the occupancy map, sub-cell: the survey runner's refinement of the
-localizer's stop poses), :func:`anchor_to` (place the surveyed layout rigidly onto an
-earlier reflector map: control points) and :func:`match_reflectors` (one-to-one matching,
-for evaluation against a truth).
+Also here (from :mod:`mmpa.calibration.survey_matching`): :func:`match_scan_to_map` on
+:func:`signed_distance_map` (a standing stop's mean scan onto the occupancy map, sub-cell:
+the survey runner's refinement of the localizer's stop poses), :func:`anchor_to` (place the
+surveyed layout rigidly onto an earlier reflector map: control points) and
+:func:`match_reflectors` (one-to-one matching, for evaluation against a truth).
 
 Units: m, rad. Pure functions over numpy arrays; bad input raises
 :class:`~mmpa.core.errors.InvalidInputError` (:class:`SurveyError` when nothing can be fitted).
@@ -56,15 +56,21 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy import ndimage
-from scipy.optimize import least_squares, linear_sum_assignment
+from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from mmpa.calibration.survey_matching import (
+    ReflectorMatch,
+    SurveyError,
+    anchor_to,
+    match_reflectors,
+    match_scan_to_map,
+    signed_distance_map,
+)
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array
-from mmpa.localization.reflectors import rigid_fit_2d
 
 __all__ = [
     "ReflectorFit",
@@ -90,10 +96,6 @@ __all__ = [
 #: incidence term ``+10 mm (1 - cos i)`` averaged over a cylinder's visible face
 #: (``mean(1 - cos i) = 1 - pi/4`` for beams evenly spread across the chord).
 DEFAULT_RANGE_BIAS = -0.010 + 0.010 * (1.0 - np.pi / 4.0)
-
-
-class SurveyError(InvalidInputError):
-    """The survey cannot be computed from these observations (none, or none usable)."""
 
 
 class SurveyConfig(BaseModel):
@@ -362,20 +364,12 @@ def bundle_adjust(
     return P, X, d
 
 
-def survey_reflectors(obs: SurveyObservations, cfg: SurveyConfig | None = None) -> ReflectorSurvey:
-    """The reflector survey of the module docstring (steps 1-4). Raises
-    :class:`SurveyError` when there are no detections; a survey in which no candidate
-    passes the association gates comes back with ``ok=False`` and its ``reason``."""
-    cfg = cfg or SurveyConfig()
-    if len(obs) == 0:
-        raise SurveyError("no reflector detections: nothing to survey (did the lidar see any?)")
-    z_all = obs.points
-    rng_all = np.linalg.norm(z_all, axis=1)
-    use = (rng_all <= cfg.max_range) & (rng_all > 1e-6)
-    if not use.any():
-        raise SurveyError(f"no reflector detection within max_range {cfg.max_range} m")
-    q, t = laser_to_map(z_all, obs.poses[obs.pose_index], obs.laser_pose)
-    labels = np.full(len(obs), -1, dtype=np.int64)
+def _fit_clusters(
+    obs: SurveyObservations, cfg: SurveyConfig, q: Array, t: Array, rng_all: Array, use: Array
+) -> tuple[list[ReflectorFit], list[np.ndarray], int]:
+    """Steps 2-3: cluster the used detections' map points ``q`` (views from ``t``, ranges
+    ``rng_all``), drop candidates seen too rarely and fit the others; returns the fits, each
+    fit's inlier detections (indices into ``obs``) and the number of candidates dropped."""
     lab_use = cluster_points(q[use], cfg.cluster_radius)
     idx_use = np.flatnonzero(use)
     fits: list[ReflectorFit] = []
@@ -400,6 +394,87 @@ def survey_reflectors(obs: SurveyObservations, cfg: SurveyConfig | None = None) 
         )
         fits.append(f)
         members.append(m[f.inliers])
+    return fits, members, dropped
+
+
+def _refine(
+    obs: SurveyObservations,
+    poses: Array,
+    labels: np.ndarray,
+    X: Array,
+    beta: Array,
+    cfg: SurveyConfig,
+) -> tuple[Array, Array]:
+    """Step 4: the bundle adjustment over the poses that saw a fitted reflector, on the mean
+    laser-frame detection per (pose, reflector); updates ``poses`` in place and returns the
+    positions and biases."""
+    n = len(X)
+    keep = labels >= 0
+    key = obs.pose_index[keep] * n + labels[keep]
+    pairs, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    zmean = np.zeros((len(pairs), 2))
+    np.add.at(zmean, inv, obs.points[keep])
+    zmean /= cnt[:, None]
+    used_poses = np.unique(pairs // n)
+    remap = np.full(len(poses), -1)
+    remap[used_poses] = np.arange(len(used_poses))
+    P, X, d = bundle_adjust(
+        poses[used_poses],
+        obs.laser_pose,
+        remap[pairs // n],
+        pairs % n,
+        zmean,
+        cnt.astype(float),
+        X,
+        beta - cfg.range_bias,
+        cfg,
+    )
+    poses[used_poses] = P
+    return X, cfg.range_bias + d
+
+
+def _residuals(
+    obs: SurveyObservations,
+    poses: Array,
+    labels: np.ndarray,
+    X: Array,
+    beta: Array,
+    rng_all: Array,
+) -> tuple[Array, np.ndarray, np.ndarray, float]:
+    """Every used view against the final positions (and poses): per reflector the residual
+    RMS (m), the scans and poses that saw it, and the RMS over all views (m)."""
+    qf, tf = laser_to_map(obs.points, poses[obs.pose_index], obs.laser_pose)
+    res_rms = np.zeros(len(X))
+    views = np.zeros(len(X), dtype=np.int64)
+    seen = np.zeros(len(X), dtype=np.int64)
+    sq_all: list[Array] = []
+    for j in range(len(X)):
+        m = np.flatnonzero(labels == j)
+        u = (qf[m] - tf[m]) / rng_all[m, None]
+        r = np.linalg.norm(qf[m] - beta[j] * u - X[j], axis=1)
+        res_rms[j] = float(np.sqrt(np.mean(r**2)))
+        sq_all.append(r**2)
+        views[j] = len(np.unique(obs.scan_index[m]))
+        seen[j] = len(np.unique(obs.pose_index[m]))
+    rms = float(np.sqrt(np.mean(np.concatenate(sq_all))))
+    return res_rms, views, seen, rms
+
+
+def survey_reflectors(obs: SurveyObservations, cfg: SurveyConfig | None = None) -> ReflectorSurvey:
+    """The reflector survey of the module docstring (steps 1-4). Raises
+    :class:`SurveyError` when there are no detections; a survey in which no candidate
+    passes the association gates comes back with ``ok=False`` and its ``reason``."""
+    cfg = cfg or SurveyConfig()
+    if len(obs) == 0:
+        raise SurveyError("no reflector detections: nothing to survey (did the lidar see any?)")
+    z_all = obs.points
+    rng_all = np.linalg.norm(z_all, axis=1)
+    use = (rng_all <= cfg.max_range) & (rng_all > 1e-6)
+    if not use.any():
+        raise SurveyError(f"no reflector detection within max_range {cfg.max_range} m")
+    q, t = laser_to_map(z_all, obs.poses[obs.pose_index], obs.laser_pose)
+    labels = np.full(len(obs), -1, dtype=np.int64)
+    fits, members, dropped = _fit_clusters(obs, cfg, q, t, rng_all, use)
     poses = obs.poses.copy()
     if not fits:
         return ReflectorSurvey(
@@ -423,44 +498,9 @@ def survey_reflectors(obs: SurveyObservations, cfg: SurveyConfig | None = None) 
         labels[m] = j
     refined = False
     if cfg.refine_poses:
-        keep = labels >= 0
-        key = obs.pose_index[keep] * len(fits) + labels[keep]
-        pairs, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-        zmean = np.zeros((len(pairs), 2))
-        np.add.at(zmean, inv, z_all[keep])
-        zmean /= cnt[:, None]
-        used_poses = np.unique(pairs // len(fits))
-        remap = np.full(len(poses), -1)
-        remap[used_poses] = np.arange(len(used_poses))
-        P, X, d = bundle_adjust(
-            poses[used_poses],
-            obs.laser_pose,
-            remap[pairs // len(fits)],
-            pairs % len(fits),
-            zmean,
-            cnt.astype(float),
-            X,
-            beta - cfg.range_bias,
-            cfg,
-        )
-        poses[used_poses] = P
-        beta = cfg.range_bias + d
+        X, beta = _refine(obs, poses, labels, X, beta, cfg)
         refined = True
-    # residuals of every used view against the final positions (and poses)
-    qf, tf = laser_to_map(z_all, poses[obs.pose_index], obs.laser_pose)
-    res_rms = np.zeros(len(fits))
-    views = np.zeros(len(fits), dtype=np.int64)
-    seen = np.zeros(len(fits), dtype=np.int64)
-    sq_all: list[Array] = []
-    for j in range(len(fits)):
-        m = np.flatnonzero(labels == j)
-        u = (qf[m] - tf[m]) / rng_all[m, None]
-        r = np.linalg.norm(qf[m] - beta[j] * u - X[j], axis=1)
-        res_rms[j] = float(np.sqrt(np.mean(r**2)))
-        sq_all.append(r**2)
-        views[j] = len(np.unique(obs.scan_index[m]))
-        seen[j] = len(np.unique(obs.pose_index[m]))
-    rms = float(np.sqrt(np.mean(np.concatenate(sq_all))))
+    res_rms, views, seen, rms = _residuals(obs, poses, labels, X, beta, rng_all)
     return ReflectorSurvey(
         X,
         beta,
@@ -475,113 +515,3 @@ def survey_reflectors(obs: SurveyObservations, cfg: SurveyConfig | None = None) 
         dropped,
         refined,
     )
-
-
-@dataclass(frozen=True)
-class ReflectorMatch:
-    """Estimated reflectors matched one-to-one to reference ones: ``pairs`` (F, 2) indices
-    (estimate, reference), ``errors`` (F,) m, ``missed`` reference indices without an
-    estimate, ``spurious`` estimate indices without a reference."""
-
-    pairs: np.ndarray
-    errors: Array
-    missed: np.ndarray
-    spurious: np.ndarray
-
-
-def match_reflectors(est: Array, ref: Array, gate: float = 0.25) -> ReflectorMatch:
-    """One-to-one matching (Hungarian, on distance) of ``est`` (N, 2) to ``ref`` (K, 2);
-    pairs farther than ``gate`` m are not matched. Evaluation against a truth."""
-    est = np.asarray(est, float).reshape(-1, 2)
-    ref = np.asarray(ref, float).reshape(-1, 2)
-    if len(est) == 0 or len(ref) == 0:
-        none = np.zeros((0, 2), dtype=np.int64)
-        return ReflectorMatch(none, np.zeros(0), np.arange(len(ref)), np.arange(len(est)))
-    D = np.linalg.norm(est[:, None, :] - ref[None, :, :], axis=2)
-    r, c = linear_sum_assignment(np.where(D <= gate, D, 1e6))
-    ok = D[r, c] <= gate
-    r, c = r[ok], c[ok]
-    return ReflectorMatch(
-        np.stack([r, c], axis=1).astype(np.int64),
-        D[r, c],
-        np.setdiff1d(np.arange(len(ref)), c),
-        np.setdiff1d(np.arange(len(est)), r),
-    )
-
-
-def anchor_to(est: Array, ref: Array, gate: float = 0.25) -> tuple[Array, Array, int]:
-    """Move the surveyed layout ``est`` (N, 2) rigidly onto reference positions ``ref``
-    (K, 2) (an earlier reflector map: control points): match one-to-one within ``gate`` m
-    (:func:`match_reflectors`), then the least-squares rotation and translation
-    ``est R^T + t`` of the matched pairs (Kabsch, no scale). The layout's shape (from the
-    lidar) is kept; only its placement comes from ``ref``, whose independent errors
-    ``s`` average to about ``s / sqrt(K)``. Returns (the moved ``est``, the transform
-    ``[tx, ty, theta]``, the number of pairs). Raises :class:`SurveyError` with fewer than
-    two pairs."""
-
-    est = np.asarray(est, float).reshape(-1, 2)
-    m = match_reflectors(est, ref, gate)
-    if len(m.pairs) < 2:
-        raise SurveyError(
-            f"anchoring needs at least 2 surveyed reflectors within {gate} m of the reference "
-            f"map, got {len(m.pairs)}"
-        )
-    R, t = rigid_fit_2d(est[m.pairs[:, 0]], np.asarray(ref, float)[m.pairs[:, 1]])
-    th = float(np.arctan2(R[1, 0], R[0, 0]))
-    return est @ R.T + t, np.array([t[0], t[1], th]), len(m.pairs)
-
-
-def signed_distance_map(occupied: np.ndarray, resolution: float) -> Array:
-    """Signed distance (H, W) m at the cell centres of an occupancy grid ``occupied`` (H, W)
-    bool to the boundary between occupied and free cells: ``+`` in free space, ``-`` inside
-    obstacles. A grid that marks every cell whose centre lies in an obstacle has its
-    surface between the last occupied and the first free centre; the boundary midway is
-    its unbiased estimate (uniform error within +- half a cell), so the field is
-    ``edt(free) - 1/2`` cells outside and ``-(edt(occupied) - 1/2)`` inside."""
-    occ = np.asarray(occupied, bool)
-    if occ.ndim != 2 or not occ.any() or occ.all():
-        raise InvalidInputError("the map needs both occupied and free cells (a 2D grid)")
-    out = ndimage.distance_transform_edt(~occ) - 0.5
-    inside = ndimage.distance_transform_edt(occ) - 0.5
-    return np.where(occ, -inside, out) * float(resolution)
-
-
-def match_scan_to_map(
-    sdf: Array,
-    resolution: float,
-    origin: tuple[float, float],
-    points: Array,
-    guess: Array,
-    huber: float = 0.05,
-    max_dist: float = 0.3,
-) -> tuple[Array, float, int]:
-    """The laser pose ``[x, y, phi]`` in ``map`` that puts the scan ``points`` (K, 2, laser
-    frame) on the map's surfaces: ``min sum_i rho(sdf(t + R(phi) z_i))`` with ``sdf`` the
-    signed distance field (:func:`signed_distance_map`, (H, W) m, cell (row 0, col 0) centred
-    at ``origin + resolution / 2``), cubic-spline interpolated, ``rho`` Huber (scale
-    ``huber`` m), from ``guess``; points farther than ``max_dist`` m from any surface at the
-    guess (things not in the map) are left out. Returns (pose, RMS m of the inlying
-    distances, number of points used)."""
-    pts = np.asarray(points, float).reshape(-1, 2)
-    g = np.asarray(guess, float)
-    if g.shape != (3,) or not np.isfinite(g).all() or not np.isfinite(pts).all():
-        raise InvalidInputError(f"need a finite guess [x, y, phi] and points, got {g}")
-    coef = ndimage.spline_filter(np.asarray(sdf, float), order=3, mode="nearest")
-    ox, oy = float(origin[0]), float(origin[1])
-
-    def dist(v: Array, z: Array) -> Array:
-        c, sn = np.cos(v[2]), np.sin(v[2])
-        x = v[0] + c * z[:, 0] - sn * z[:, 1]
-        y = v[1] + sn * z[:, 0] + c * z[:, 1]
-        rc = np.stack([(y - oy) / resolution - 0.5, (x - ox) / resolution - 0.5])
-        return ndimage.map_coordinates(coef, rc, order=3, mode="nearest", prefilter=False)
-
-    use = pts[np.abs(dist(g, pts)) <= max_dist]
-    if len(use) < 10:
-        raise SurveyError(f"only {len(use)} scan points lie near the map's surfaces")
-    sol = least_squares(
-        lambda v: dist(v, use), g, loss="huber", f_scale=huber, x_scale=[0.01, 0.01, 0.005]
-    )
-    r = dist(sol.x, use)
-    inl = np.abs(r) <= huber
-    return sol.x, float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("nan"), len(use)

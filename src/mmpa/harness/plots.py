@@ -53,28 +53,8 @@ def _rect(ax, center, size, yaw_deg, **kw) -> None:
     ax.add_patch(r)
 
 
-def save_topdown(
-    path: str | Path,
-    scene: SceneConfig,
-    robot: RobotDescription,
-    base_pose2d: Array,
-    scan_points_map: Array | None = None,
-    scan_reflective: Array | None = None,
-    map_reflectors: Array | None = None,
-    path_xy: Array | None = None,
-    goal_pose2d: Array | None = None,
-    title: str = "",
-    bounds: tuple[float, float, float, float] | None = None,
-) -> None:
-    """Top-down map: walls, desks, reflectors (true and surveyed), sites, the robot footprint,
-    its path and a lidar scan (points in ``map``; reflective returns highlighted).
-
-    ``bounds`` = ``(x_min, x_max, y_min, y_max)``; default: the lobby and the corridor mouth.
-    """
-    fig = Figure(figsize=(10, 8), dpi=110)
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
-    ax.set_aspect("equal")
+def _draw_room(ax, scene: SceneConfig) -> None:
+    """Walls, desks, the speed bump's outline and the fiducials."""
     for w in scene.walls:
         a, b = np.array(w.start), np.array(w.end)
         c, d = (a + b) / 2, b - a
@@ -108,6 +88,10 @@ def save_topdown(
         fx = fa.origin[0] + c * f[:, 0] - s * f[:, 1]
         fy = fa.origin[1] + s * f[:, 0] + c * f[:, 1]
         ax.plot(fx, fy, "m+", ms=6, label="fiducials (paper 002)")
+
+
+def _draw_reflectors_and_sites(ax, scene: SceneConfig, map_reflectors: Array | None) -> None:
+    """The true reflectors (numbered), the map's, and the sites' park poses."""
     refl = scene.reflector_positions()
     for i, (x, y) in enumerate(refl):
         ax.add_patch(Circle((x, y), scene.reflectors.radius * 2, color="crimson", zorder=4))
@@ -124,6 +108,16 @@ def save_topdown(
             arrowprops={"arrowstyle": "->", "color": "tab:green"},
         )
         ax.text(x - 0.15, y + 0.1, f"site {name}", color="tab:green", fontsize=8)
+
+
+def _draw_path_and_scan(
+    ax,
+    path_xy: Array | None,
+    scan_points_map: Array | None,
+    scan_reflective: Array | None,
+    goal_pose2d: Array | None,
+) -> None:
+    """The base's path, the lidar scan (reflective returns ringed) and the goal."""
     if path_xy is not None and len(path_xy):
         ax.plot(path_xy[:, 0], path_xy[:, 1], "-", color="tab:blue", lw=1, label="base path (true)")
     if scan_points_map is not None and len(scan_points_map):
@@ -148,6 +142,10 @@ def save_topdown(
             )
     if goal_pose2d is not None:
         ax.plot(goal_pose2d[0], goal_pose2d[1], "g*", ms=12, label="goal")
+
+
+def _draw_robot(ax, robot: RobotDescription, base_pose2d: Array) -> None:
+    """The base's footprint at ``base_pose2d`` and its heading."""
     x, y, th = base_pose2d
     b = robot.base
     c, s = np.cos(th), np.sin(th)
@@ -168,6 +166,35 @@ def save_topdown(
         arrowprops={"arrowstyle": "-|>", "color": "navy"},
         zorder=6,
     )
+
+
+def save_topdown(
+    path: str | Path,
+    scene: SceneConfig,
+    robot: RobotDescription,
+    base_pose2d: Array,
+    scan_points_map: Array | None = None,
+    scan_reflective: Array | None = None,
+    map_reflectors: Array | None = None,
+    path_xy: Array | None = None,
+    goal_pose2d: Array | None = None,
+    title: str = "",
+    bounds: tuple[float, float, float, float] | None = None,
+) -> None:
+    """Top-down map: walls, desks, reflectors (true and surveyed), sites, the robot footprint,
+    its path and a lidar scan (points in ``map``; reflective returns highlighted).
+
+    ``bounds`` = ``(x_min, x_max, y_min, y_max)``; default: the lobby and the corridor mouth.
+    """
+    fig = Figure(figsize=(10, 8), dpi=110)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    ax.set_aspect("equal")
+    _draw_room(ax, scene)
+    _draw_reflectors_and_sites(ax, scene, map_reflectors)
+    _draw_path_and_scan(ax, path_xy, scan_points_map, scan_reflective, goal_pose2d)
+    _draw_robot(ax, robot, base_pose2d)
+    x, y, th = base_pose2d
     x0, x1, y0, y1 = bounds or (-4.0, 4.6, -3.6, 3.0)
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)

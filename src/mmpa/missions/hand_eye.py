@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -44,6 +44,7 @@ from mmpa.calibration.charuco import (
 )
 from mmpa.calibration.hand_eye import (
     HandEyeResult,
+    Station,
     board_consistency,
     calibrate_hand_eye,
     plan_stations,
@@ -81,25 +82,17 @@ class HandEyeProcedureConfig(BaseModel):
     board: CharucoBoardSpec = CharucoBoardSpec()
     min_corners: int = Field(12, ge=4)
     settle_s: float = Field(0.5, ge=0)
-    # joint by default: against the identifiable hand-eye E6 X (module docstring of
-    # mmpa.calibration.kinematic) 0.06-0.35 mm on realistic seeds 0-9, OpenCV 0.05-1.51 mm
+    # joint by default (docs/calibration.md "Hand-eye: the procedure's defaults")
     method: Literal["joint", "opencv"] = "joint"
-    # per-station arm-base displacement priors: the platform's mount compliance tilts the
-    # arm base by up to 0.05 deg folded -> full reach (DESIGN.md's figure) and the chassis
-    # rocks on its wheels, about the floor contact 0.4 m below the arm base: an SD of 0.03
-    # deg, and 0.03 deg x 0.4 m = 0.2 mm, rounded up to 0.3 mm, between stations (the twin's
-    # true arm base moves up to 0.6-1.1 mm / 0.04-0.09 deg from the first view over a
-    # calibration, in the summary's diagnostic; the old 0.05 mm prior was far too tight)
+    # per-station arm-base displacement priors: 0.03 deg / 0.3 mm, the mount's tilt and the
+    # chassis rocking about the floor contact (docs/calibration.md, the procedure's defaults)
     joint: JointCalibrationConfig = JointCalibrationConfig(
         station_rot_sigma_deg=0.03, station_shift_sigma_mm=0.3
     )
     pixel_sigma: float | None = Field(None, gt=0)
     # four distances from 0.32 to 0.62 m, tilts to 45 deg and rolls of +-60 deg: the views'
-    # spread in reach (elbow angle) and orientation separates the camera's depth axis from
-    # the upper arm and forearm lengths a2, a3 and the board's place, which trade with it in
-    # a narrow grid (posterior correlation 0.93-0.97 at 0.40 / 0.48 m; the depth axis's
-    # posterior SD 0.53 -> 0.44 mm on seed 3 from tilts to 35 deg and rolls of +-40 deg to
-    # this grid; realistic seeds 0-9 against E6 X: max 0.54 -> 0.35 mm)
+    # spread in reach and orientation separates the camera's depth axis from the arm's
+    # lengths a2, a3 and the board's place (docs/calibration.md, the procedure's defaults)
     distances: tuple[float, ...] = (0.32, 0.42, 0.52, 0.62)
     tilts_deg: tuple[float, ...] = (0.0, 15.0, 30.0, 45.0)
     rolls_deg: tuple[float, ...] = (-60.0, 0.0, 60.0)
@@ -134,6 +127,159 @@ def _capture_board(camera: Camera, cfg: HandEyeProcedureConfig) -> CharucoPose:
     return board_pose(camera.capture().color, cfg.board.cv_board(), K, cfg.min_corners)
 
 
+def _check_inputs(T_armbase_board_guess: Array, q_ref: Array) -> tuple[Array, Array]:
+    """The board pose guess (4, 4) and ``q_ref`` (6,) as float arrays, checked."""
+    guess = np.asarray(T_armbase_board_guess, float)
+    if guess.shape != (4, 4) or not np.isfinite(guess).all():
+        raise InvalidInputError(
+            f"the board pose guess must be a finite 4x4 transform, got shape {guess.shape}"
+        )
+    R = guess[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise InvalidInputError("the board pose guess's rotation is not a rotation matrix")
+    q_ref = np.asarray(q_ref, float)
+    if q_ref.shape != (6,) or not np.isfinite(q_ref).all():
+        raise InvalidInputError(f"q_ref must be 6 finite joint angles (rad), got {q_ref!r}")
+    return guess, q_ref
+
+
+def _camera_geometry(camera: Camera) -> tuple[Array, tuple[int, int]]:
+    intr = camera.intrinsics
+    return intr.K, (intr.width, intr.height)
+
+
+def _first_view(
+    arm: Arm,
+    camera: Camera,
+    robot: RobotDescription,
+    guess: Array,
+    q_ref: Array,
+    cfg: HandEyeProcedureConfig,
+    wait: Callable[[float], None],
+    log: Callable[[str], None],
+) -> tuple[Array, CharucoPose, Array]:
+    """Step 1: a view planned from the guess; returns the encoder reading ``q0`` (6,) rad,
+    the board seen there and its pose ``Y0 = fk(q0) X_nominal C`` (4, 4) in the arm base."""
+    dh, X_nom = robot.arm.dh, robot.camera.T_flange_camera
+    K, size = _camera_geometry(camera)
+    first = plan_stations(
+        dh,
+        robot.arm.q_limits,
+        guess,
+        X_nom,
+        cfg.board.corners(),
+        K,
+        size,
+        3,
+        q_ref,
+        tilts_deg=(0.0, 10.0),
+        rolls_deg=(0.0,),
+        max_joint_step=2 * np.pi,
+    )[0]
+    arm.move_joints(first.q)
+    wait(cfg.settle_s)
+    q0 = arm.joint_positions()
+    pose0 = _capture_board(camera, cfg)
+    Y0 = fk(dh, q0) @ X_nom @ pose0.T_camera_board
+    log(f"board found: {pose0.n_corners} corners, {pose0.rms_px:.3f} px RMS")
+    return q0, pose0, Y0
+
+
+@dataclass
+class _Views:
+    """Step 3's harvest: per planned view a row (``rows``), per used view the encoder
+    reading, the nominal flange pose, the board pose in the camera, the corners' board
+    points and pixels and the PnP reprojection RMS (px)."""
+
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    qs: list[Array] = field(default_factory=list)
+    G: list[Array] = field(default_factory=list)
+    C: list[Array] = field(default_factory=list)
+    P: list[Array] = field(default_factory=list)
+    uv: list[Array] = field(default_factory=list)
+    rms: list[float] = field(default_factory=list)
+
+    def add(self, i: int, st: Station, q: Array, G: Array, pose: CharucoPose) -> dict[str, Any]:
+        """A used view ``i`` at station ``st``; returns its row (appended by the caller)."""
+        self.qs.append(q)
+        self.G.append(G)
+        self.C.append(pose.T_camera_board)
+        self.P.append(pose.detection.object_points)
+        self.uv.append(pose.detection.image_points)
+        self.rms.append(pose.rms_px)
+        return {
+            "station": i,
+            "used": True,
+            "tilt_deg": st.tilt_deg,
+            "azimuth_deg": st.azimuth_deg,
+            "roll_deg": st.roll_deg,
+            "distance_m": st.distance,
+            "corners": pose.n_corners,
+            "reproj_rms_px": pose.rms_px,
+        }
+
+
+def _visit(
+    arm: Arm,
+    camera: Camera,
+    dh: DHParameters,
+    stations: list[Station],
+    cfg: HandEyeProcedureConfig,
+    wait: Callable[[float], None],
+    log: Callable[[str], None],
+    on_view: Callable[[int, CharucoPose], dict[str, Any]] | None,
+) -> _Views:
+    """Step 3: move to each station, settle, read the encoders, capture and detect the board
+    (a view without it is skipped and reported)."""
+    views = _Views()
+    for i, st in enumerate(stations):
+        arm.move_joints(st.q)
+        wait(cfg.settle_s)
+        q = arm.joint_positions()
+        try:
+            pose = _capture_board(camera, cfg)
+        except BoardNotFoundError as e:
+            log(f"station {i}: skipped ({e})")
+            views.rows.append({"station": i, "used": False, "reason": str(e)})
+            continue
+        row = views.add(i, st, q, fk(dh, q), pose)
+        if on_view is not None:
+            row.update(on_view(i, pose))
+        row["q"] = [float(v) for v in q]
+        views.rows.append(row)
+        log(f"station {i}: {pose.n_corners} corners, {pose.rms_px:.3f} px")
+    if len(views.G) < 3:
+        raise MMPAError(f"only {len(views.G)} stations saw the board; need at least 3")
+    return views
+
+
+def _fit(
+    dh: DHParameters,
+    views: _Views,
+    K: Array,
+    cfg: HandEyeProcedureConfig,
+    log: Callable[[str], None],
+) -> tuple[HandEyeResult, JointCalibrationResult, float, float]:
+    """Steps 4 and 5: OpenCV's five methods (the best by residuals), then the joint
+    kinematic + hand-eye fit from the best; returns both, the corner noise (px) and the
+    joint fit's compute time (s)."""
+    corners = cfg.board.corners()
+    G_a, C_a = np.array(views.G), np.array(views.C)
+    res = calibrate_hand_eye(G_a, C_a, corners)
+    obs = BoardObservations.from_lists(views.qs, views.P, views.uv)
+    pix = cfg.pixel_sigma or max(float(np.sqrt(np.mean(np.square(views.rms)))), 0.05)
+    t = time.perf_counter()
+    Y_cv = board_consistency(G_a, C_a, res.T_flange_camera, corners).T_base_board
+    jcfg = cfg.joint.model_copy(update={"pixel_sigma": pix})
+    joint = calibrate_kinematics_hand_eye(dh, obs, K, res.T_flange_camera, Y_cv, jcfg)
+    joint_s = time.perf_counter() - t
+    log(
+        f"joint calibration: {joint.rms_px_start:.3f} -> {joint.rms_px:.3f} px RMS, "
+        f"{joint.n_identified} DH directions identified, {joint_s:.1f} s"
+    )
+    return res, joint, pix, joint_s
+
+
 def calibrate_hand_eye_on_robot(
     arm: Arm,
     camera: Camera,
@@ -158,53 +304,18 @@ def calibrate_hand_eye_on_robot(
     board, and :class:`MMPAError` when fewer than 3 views saw it."""
     cfg = cfg or HandEyeProcedureConfig()
     log = log or (lambda m: None)
-    guess = np.asarray(T_armbase_board_guess, float)
-    if guess.shape != (4, 4) or not np.isfinite(guess).all():
-        raise InvalidInputError(
-            f"the board pose guess must be a finite 4x4 transform, got shape {guess.shape}"
-        )
-    R = guess[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-        raise InvalidInputError("the board pose guess's rotation is not a rotation matrix")
-    q_ref = np.asarray(q_ref, float)
-    if q_ref.shape != (6,) or not np.isfinite(q_ref).all():
-        raise InvalidInputError(f"q_ref must be 6 finite joint angles (rad), got {q_ref!r}")
+    guess, q_ref = _check_inputs(T_armbase_board_guess, q_ref)
     dh = robot.arm.dh
-    X_nom = robot.camera.T_flange_camera
-    q_lim = robot.arm.q_limits
-    corners = cfg.board.corners()
-    intr = camera.intrinsics
-    K, size = intr.K, (intr.width, intr.height)
-
+    K, size = _camera_geometry(camera)
     # 1. first view, planned from the guess
-    first = plan_stations(
-        dh,
-        q_lim,
-        guess,
-        X_nom,
-        corners,
-        K,
-        size,
-        3,
-        q_ref,
-        tilts_deg=(0.0, 10.0),
-        rolls_deg=(0.0,),
-        max_joint_step=2 * np.pi,
-    )[0]
-    arm.move_joints(first.q)
-    wait(cfg.settle_s)
-    q0 = arm.joint_positions()
-    pose0 = _capture_board(camera, cfg)
-    Y0 = fk(dh, q0) @ X_nom @ pose0.T_camera_board
-    log(f"board found: {pose0.n_corners} corners, {pose0.rms_px:.3f} px RMS")
-
+    q0, pose0, Y0 = _first_view(arm, camera, robot, guess, q_ref, cfg, wait, log)
     # 2. stations around the measured board
     stations = plan_stations(
         dh,
-        q_lim,
+        robot.arm.q_limits,
         Y0,
-        X_nom,
-        corners,
+        robot.camera.T_flange_camera,
+        cfg.board.corners(),
         K,
         size,
         cfg.stations,
@@ -213,59 +324,9 @@ def calibrate_hand_eye_on_robot(
         tilts_deg=cfg.tilts_deg,
         rolls_deg=cfg.rolls_deg,
     )
-
-    # 3. visit them
-    rows: list[dict[str, Any]] = []
-    qs, G, C, P, uv, rms = [], [], [], [], [], []
-    for i, st in enumerate(stations):
-        arm.move_joints(st.q)
-        wait(cfg.settle_s)
-        q = arm.joint_positions()
-        try:
-            pose = _capture_board(camera, cfg)
-        except BoardNotFoundError as e:
-            log(f"station {i}: skipped ({e})")
-            rows.append({"station": i, "used": False, "reason": str(e)})
-            continue
-        qs.append(q)
-        G.append(fk(dh, q))
-        C.append(pose.T_camera_board)
-        P.append(pose.detection.object_points)
-        uv.append(pose.detection.image_points)
-        rms.append(pose.rms_px)
-        row: dict[str, Any] = {
-            "station": i,
-            "used": True,
-            "tilt_deg": st.tilt_deg,
-            "azimuth_deg": st.azimuth_deg,
-            "roll_deg": st.roll_deg,
-            "distance_m": st.distance,
-            "corners": pose.n_corners,
-            "reproj_rms_px": pose.rms_px,
-        }
-        if on_view is not None:
-            row.update(on_view(i, pose))
-        row["q"] = [float(v) for v in q]
-        rows.append(row)
-        log(f"station {i}: {pose.n_corners} corners, {pose.rms_px:.3f} px")
-    if len(G) < 3:
-        raise MMPAError(f"only {len(G)} stations saw the board; need at least 3")
-    G_a, C_a = np.array(G), np.array(C)
-
-    # 4. OpenCV's five methods, the best by residuals
-    res = calibrate_hand_eye(G_a, C_a, corners)
-    # 5. the joint kinematic + hand-eye fit, from the best OpenCV solution
-    obs = BoardObservations.from_lists(qs, P, uv)
-    pix = cfg.pixel_sigma or max(float(np.sqrt(np.mean(np.square(rms)))), 0.05)
-    t = time.perf_counter()
-    Y_cv = board_consistency(G_a, C_a, res.T_flange_camera, corners).T_base_board
-    jcfg = cfg.joint.model_copy(update={"pixel_sigma": pix})
-    joint = calibrate_kinematics_hand_eye(dh, obs, K, res.T_flange_camera, Y_cv, jcfg)
-    joint_s = time.perf_counter() - t
-    log(
-        f"joint calibration: {joint.rms_px_start:.3f} -> {joint.rms_px:.3f} px RMS, "
-        f"{joint.n_identified} DH directions identified, {joint_s:.1f} s"
-    )
+    # 3. visit them; 4.-5. the fits
+    views = _visit(arm, camera, dh, stations, cfg, wait, log, on_view)
+    res, joint, pix, joint_s = _fit(dh, views, K, cfg, log)
     use_joint = cfg.method == "joint"
     return HandEyeProcedureResult(
         T_flange_camera=joint.T_flange_camera if use_joint else res.T_flange_camera,
@@ -274,10 +335,10 @@ def calibrate_hand_eye_on_robot(
         opencv=res,
         joint=joint,
         pixel_sigma=pix,
-        stations=rows,
-        q=np.array(qs),
-        G=G_a,
-        C=C_a,
+        stations=views.rows,
+        q=np.array(views.qs),
+        G=np.array(views.G),
+        C=np.array(views.C),
         first_view={"corners": float(pose0.n_corners), "rms_px": float(pose0.rms_px)},
         joint_s=joint_s,
     )
