@@ -358,6 +358,21 @@ def _reach_interval(
     return max(t1, t_now), t2
 
 
+@dataclass(frozen=True)
+class _PassGeometry:
+    """What every fiducial's search of a pass shares: the tool-point IK at the tubes' height,
+    the arm limits, the reach ``r`` (m), the base heading's rotation ``R`` (map <- base), the
+    arm mount's xy in the base frame (m), the reflectors' height and the arm base's (m)."""
+
+    ik: ToolPointIK
+    lim: ArmLimits
+    r: float
+    R: Array
+    mount: Array
+    z_reflector: float
+    z_arm: float
+
+
 def run_pass(
     robot: MovingRobot,
     description: RobotDescription,
@@ -382,6 +397,24 @@ def run_pass(
     """
     cfg = cfg or SearchConfig()
     rng = rng or np.random.default_rng(0)
+    P, start = _checked_inputs(fiducials, speed, heading, start_pose2d)
+    geo = _pass_geometry(description, z_reflector, tube_height, heading, cfg)
+    u = np.array([math.cos(heading), math.sin(heading)])
+    robot.start_base(speed, heading)
+    t0 = robot.now()
+    strategy.reset(start[:2], speed * u, t0, rng)
+    results: list[FiducialResult] = []
+    for i, p in enumerate(P):
+        results.append(_search_fiducial(robot, strategy, geo, cfg, i, p))
+    robot.stop_base()
+    return PassResult(strategy.name, float(speed), float(heading), results, robot.now() - t0)
+
+
+def _checked_inputs(
+    fiducials: Array, speed: float, heading: float, start_pose2d: Array
+) -> tuple[Array, Array]:
+    """The fiducials (n, 2) and the start pose (3,) as float arrays; raises
+    :class:`InvalidInputError` on a non-finite or malformed input or a negative speed."""
     P = np.asarray(fiducials, dtype=float)
     if P.ndim != 2 or P.shape[1] != 2 or not np.all(np.isfinite(P)):
         raise InvalidInputError(f"fiducials must be finite (n, 2) map positions, got {P.shape}")
@@ -395,6 +428,18 @@ def run_pass(
     start = np.asarray(start_pose2d, dtype=float)
     if start.shape != (3,) or not np.all(np.isfinite(start)):
         raise InvalidInputError(f"start pose must be finite [x, y, yaw], got {start}")
+    return P, start
+
+
+def _pass_geometry(
+    description: RobotDescription,
+    z_reflector: float,
+    tube_height: float,
+    heading: float,
+    cfg: SearchConfig,
+) -> _PassGeometry:
+    """The IK with the sensor ``cfg.standoff`` above the tubes' top and the pivot at half
+    their height (arm-base frame), the reach (``cfg.reach`` or the IK's minus the margin)."""
     T_mount = description.T_base_link_arm_base
     z_top = z_reflector + tube_height
     z_arm = T_mount[2, 3]
@@ -407,76 +452,96 @@ def run_pass(
     lim = ArmLimits.from_description(description)
     r = cfg.reach if cfg.reach is not None else ik.reach_radius() - cfg.reach_margin
     R = _rot(heading)  # a differential drive faces its direction of travel
-    mount = T_mount[:2, 3]
-    u = np.array([math.cos(heading), math.sin(heading)])
-    robot.start_base(speed, heading)
-    t0 = robot.now()
-    strategy.reset(start[:2], speed * u, t0, rng)
-    results: list[FiducialResult] = []
-    for i, p in enumerate(P):
-        t = robot.now()
-        a_t = strategy.base_estimate(t) + R @ mount
-        iv = _reach_interval(a_t, strategy.velocity_estimate(), p, r, t, t)
-        if iv is None:
-            results.append(FiducialResult(i, "out_of_reach"))
+    return _PassGeometry(ik, lim, r, R, T_mount[:2, 3], z_reflector, z_arm)
+
+
+def _search_fiducial(
+    robot: MovingRobot,
+    strategy: SearchStrategy,
+    geo: _PassGeometry,
+    cfg: SearchConfig,
+    i: int,
+    p: Array,
+) -> FiducialResult:
+    """Fiducial ``i`` at ``p`` (map xy, m): wait until it is in reach, move to its expected
+    position, then search batches of the strategy's points (Algorithm 2 plans) until the
+    sensor triggers on it (within the gate), it leaves the reach or the time is up."""
+    R, mount = geo.R, geo.mount
+    t = robot.now()
+    a_t = strategy.base_estimate(t) + R @ mount
+    iv = _reach_interval(a_t, strategy.velocity_estimate(), p, geo.r, t, t)
+    if iv is None:
+        return FiducialResult(i, "out_of_reach")
+    t_in, t_out = iv
+    if t_in > t:
+        robot.idle(t_in - t)
+    t_start = robot.now()
+    t_end = min(t_out, t_start + cfg.max_search_time)
+    res = FiducialResult(i, "missed", t_start=t_start)
+    strategy.begin(t_start)
+    hit = False
+    first = True
+    while not hit and robot.now() < t_end:
+        offs = (
+            strategy.approach_offset()[None]
+            if first
+            else strategy.next_offsets(cfg.points_per_round)
+        )
+        first = False
+        tn = robot.now()
+        base = strategy.base_estimate(tn)
+        a_now = base + R @ mount
+        tgt = R.T @ ((p + offs[:, :2]) - a_now).T  # arm-base frame, (2, n)
+        pts = np.concatenate([tgt.T, offs[:, 2:]], axis=1)
+        vel = np.zeros(strategy.dims)
+        vel[:2] = -(R.T @ strategy.velocity_estimate())
+        q0 = robot.joint_positions()
+        plan = iterative_plan(pts, vel, q0, geo.ik, geo.lim, cfg.planning.n_iter)
+        res.planning_rmse.append(plan.rmse.tolist())
+        res.n_rounds += 1
+        if len(plan.q) == 0:
+            robot.idle(min(cfg.retry_wait, max(t_end - robot.now(), 0.0)))
             continue
-        t_in, t_out = iv
-        if t_in > t:
-            robot.idle(t_in - t)
-        t_start = robot.now()
-        t_end = min(t_out, t_start + cfg.max_search_time)
-        res = FiducialResult(i, "missed", t_start=t_start)
-        strategy.begin(t_start)
-        hit = False
-        first = True
-        while not hit and robot.now() < t_end:
-            offs = (
-                strategy.approach_offset()[None]
-                if first
-                else strategy.next_offsets(cfg.points_per_round)
-            )
-            first = False
-            tn = robot.now()
-            base = strategy.base_estimate(tn)
-            a_now = base + R @ mount
-            tgt = R.T @ ((p + offs[:, :2]) - a_now).T  # arm-base frame, (2, n)
-            pts = np.concatenate([tgt.T, offs[:, 2:]], axis=1)
-            vel = np.zeros(strategy.dims)
-            vel[:2] = -(R.T @ strategy.velocity_estimate())
-            q0 = robot.joint_positions()
-            plan = iterative_plan(pts, vel, q0, ik, lim, cfg.planning.n_iter)
-            res.planning_rmse.append(plan.rmse.tolist())
-            res.n_rounds += 1
-            if len(plan.q) == 0:
-                robot.idle(min(cfg.retry_wait, max(t_end - robot.now(), 0.0)))
-                continue
-            times, qs, _ = sample_path(q0, plan.q, lim, cfg.planning.control_dt)
-            keep = times <= (t_end - tn)
-            if not keep[1:].any():
-                break
-            res.n_points += len(plan.q)
-            hit, t_hit, q_hit = robot.execute(times[keep], qs[keep])
-            if hit:
-                beam = ik.beam_point(q_hit, z_reflector - z_arm)
-                z = p - R @ (mount + beam)
-                est = strategy.base_estimate(t_hit)
-                if float(np.linalg.norm(z - est)) > cfg.gate:
-                    res.spurious += 1  # the beam found a neighbouring tube: keep searching
-                    hit = False
-                    continue
-                res.status = "intercepted"
-                res.t_hit = t_hit
-                res.search_time = t_hit - t_start
-                res.z = z
-                res.estimate_before = est
-                res.q_hit = q_hit
-                res.position_error = float(np.linalg.norm(z - strategy.dead_reckoned(t_hit)))
-                strategy.observe(t_hit, z)
-                if isinstance(strategy, Stochastic) and strategy.dims == 4:
-                    d = ik.beam(q_hit)[1]  # d = Rx(roll) Ry(pitch) (0, 0, -1)
-                    strategy.observe_tilt(
-                        math.atan2(d[1], -d[2]), math.asin(float(np.clip(-d[0], -1, 1)))
-                    )
-        results.append(res)
-    robot.stop_base()
-    return PassResult(strategy.name, float(speed), float(heading), results, robot.now() - t0)
+        times, qs, _ = sample_path(q0, plan.q, geo.lim, cfg.planning.control_dt)
+        keep = times <= (t_end - tn)
+        if not keep[1:].any():
+            break
+        res.n_points += len(plan.q)
+        hit, t_hit, q_hit = robot.execute(times[keep], qs[keep])
+        if hit:
+            hit = _intercepted(strategy, geo, cfg, res, p, t_start, t_hit, q_hit)
+    return res
+
+
+def _intercepted(
+    strategy: SearchStrategy,
+    geo: _PassGeometry,
+    cfg: SearchConfig,
+    res: FiducialResult,
+    p: Array,
+    t_start: float,
+    t_hit: float,
+    q_hit: Array,
+) -> bool:
+    """A trigger at ``t_hit`` with the arm at ``q_hit``: the base position it measures (the
+    beam on the fiducial ``p``); beyond ``cfg.gate`` of the estimate it is a neighbouring tube
+    (counted spurious, False); else ``res`` is intercepted, the strategy observes the base
+    (and the beam's tilt, 6-DOF search) and True."""
+    beam = geo.ik.beam_point(q_hit, geo.z_reflector - geo.z_arm)
+    z = p - geo.R @ (geo.mount + beam)
+    est = strategy.base_estimate(t_hit)
+    if float(np.linalg.norm(z - est)) > cfg.gate:
+        res.spurious += 1  # the beam found a neighbouring tube: keep searching
+        return False
+    res.status = "intercepted"
+    res.t_hit = t_hit
+    res.search_time = t_hit - t_start
+    res.z = z
+    res.estimate_before = est
+    res.q_hit = q_hit
+    res.position_error = float(np.linalg.norm(z - strategy.dead_reckoned(t_hit)))
+    strategy.observe(t_hit, z)
+    if isinstance(strategy, Stochastic) and strategy.dims == 4:
+        d = geo.ik.beam(q_hit)[1]  # d = Rx(roll) Ry(pitch) (0, 0, -1)
+        strategy.observe_tilt(math.atan2(d[1], -d[2]), math.asin(float(np.clip(-d[0], -1, 1))))
+    return True

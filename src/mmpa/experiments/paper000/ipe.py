@@ -80,6 +80,7 @@ def summarize_sites(rows: list[dict], sites: list[str]) -> dict:
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
+    """The trials (:func:`method_trials`), the per-site figures, Fig. 8 and 9, the report."""
     rows, prows, iters = method_trials(cfg, cfg.paper_method, ctx)
     write_csv(ctx.out / "iterations.csv", iters)
     S = summarize_sites(rows, cfg.sites)
@@ -87,64 +88,78 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     figs = [plot_fig8(rows, cfg.sites, ctx.out / "fig8_parking_vs_ipe.png")]
     figs.append(plot_fig9(rows, iters, cfg.sites, ctx.out / "fig9_iterations.png"))
     table = []
-    nan = float("nan")
     for s in cfg.sites:
-        p = paper000.TABLE3.get(s, {})
-        m = S[s]
-        q = P[s] if P is not None else None
+        table += _table3_rows(s, S[s], P[s] if P is not None else None)
+    report = _report(cfg, rows, table)
+    summary = {s: _site_summary(S[s]) for s in cfg.sites}
+    if P is not None:
+        for s in cfg.sites:
+            summary[s]["paper_method"] = _site_summary(P[s])
+    return Outcome(rows + prows, summary, report, figs)
 
-        def pm(f, q=q):  # the paper method's figure, or NaN when not run
-            return f(q) if q is not None else nan
 
-        table += [
-            ["success", s, p.get("suc", nan), pm(lambda x: x["success"]), m["success"]],
-            [
-                "mean E_t (mm)",
-                s,
-                p.get("E_t", nan) * 1e3,
-                pm(lambda x: x["E_t"]["mean"] * 1e3),
-                m["E_t"]["mean"] * 1e3,
-            ],
-            [
-                "SD E_t (mm)",
-                s,
-                p.get("E_t_sd", nan) * 1e3,
-                pm(lambda x: x["E_t"]["sd"] * 1e3),
-                m["E_t"]["sd"] * 1e3,
-            ],
-            ["max E_t (mm)", s, nan, pm(lambda x: x["E_t"]["max"] * 1e3), m["E_t"]["max"] * 1e3],
-            ["mean E_R", s, p.get("E_R", nan), pm(lambda x: x["E_R"]["mean"]), m["E_R"]["mean"]],
-            ["SD E_R", s, p.get("E_R_sd", nan), pm(lambda x: x["E_R"]["sd"]), m["E_R"]["sd"]],
-            [
-                "mean iterations",
-                s,
-                nan,
-                pm(lambda x: x["iterations"]["mean"]),
-                m["iterations"]["mean"],
-            ],
-            [
-                "IPE compute, median (s)",
-                s,
-                nan,
-                pm(lambda x: x["compute_s"]["median"]),
-                m["compute_s"]["median"],
-            ],
-            [
-                "per registration, mean (s)",
-                s,
-                1.6,
-                pm(lambda x: x["register_s"]["mean"]),
-                m["register_s"]["mean"],
-            ],
-            [
-                "parking E_t, mean (mm)",
-                s,
-                paper000.TABLE2.get(s, {}).get("E_t", nan) * 1e3,
-                pm(lambda x: x["park_E_t"]["mean"] * 1e3),
-                m["park_E_t"]["mean"] * 1e3,
-            ],
-        ]
-    report = (
+def _table3_rows(s: str, m: dict, q: dict | None) -> list[list]:
+    """Table 3's lines of site ``s``: the paper (lab), the paper method (``q``, NaN when not
+    run) and mmpa (``m``) in the twin; E_t in mm."""
+    nan = float("nan")
+    p = paper000.TABLE3.get(s, {})
+
+    def pm(f, q=q):  # the paper method's figure, or NaN when not run
+        return f(q) if q is not None else nan
+
+    return [
+        ["success", s, p.get("suc", nan), pm(lambda x: x["success"]), m["success"]],
+        [
+            "mean E_t (mm)",
+            s,
+            p.get("E_t", nan) * 1e3,
+            pm(lambda x: x["E_t"]["mean"] * 1e3),
+            m["E_t"]["mean"] * 1e3,
+        ],
+        [
+            "SD E_t (mm)",
+            s,
+            p.get("E_t_sd", nan) * 1e3,
+            pm(lambda x: x["E_t"]["sd"] * 1e3),
+            m["E_t"]["sd"] * 1e3,
+        ],
+        ["max E_t (mm)", s, nan, pm(lambda x: x["E_t"]["max"] * 1e3), m["E_t"]["max"] * 1e3],
+        ["mean E_R", s, p.get("E_R", nan), pm(lambda x: x["E_R"]["mean"]), m["E_R"]["mean"]],
+        ["SD E_R", s, p.get("E_R_sd", nan), pm(lambda x: x["E_R"]["sd"]), m["E_R"]["sd"]],
+        [
+            "mean iterations",
+            s,
+            nan,
+            pm(lambda x: x["iterations"]["mean"]),
+            m["iterations"]["mean"],
+        ],
+        [
+            "IPE compute, median (s)",
+            s,
+            nan,
+            pm(lambda x: x["compute_s"]["median"]),
+            m["compute_s"]["median"],
+        ],
+        [
+            "per registration, mean (s)",
+            s,
+            1.6,
+            pm(lambda x: x["register_s"]["mean"]),
+            m["register_s"]["mean"],
+        ],
+        [
+            "parking E_t, mean (mm)",
+            s,
+            paper000.TABLE2.get(s, {}).get("E_t", nan) * 1e3,
+            pm(lambda x: x["park_E_t"]["mean"] * 1e3),
+            m["park_E_t"]["mean"] * 1e3,
+        ],
+    ]
+
+
+def _report(cfg: Config, rows: list[dict], table: list[list]) -> str:
+    """report.md: the set-up, Table 3, the failures and the figures."""
+    return (
         "IPE estimate of the relative parking pose dT_B against the simulator's truth "
         f"({cfg.n_trials()} trials per site, seed {cfg.seed}). Parking offsets are drawn from "
         "paper Table 2 (planar part; z, roll and pitch come from the terrain: the speed bump "
@@ -165,11 +180,6 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         )
         + "\n![Fig. 8](fig8_parking_vs_ipe.png)\n\n![Fig. 9](fig9_iterations.png)\n"
     )
-    summary = {s: _site_summary(S[s]) for s in cfg.sites}
-    if P is not None:
-        for s in cfg.sites:
-            summary[s]["paper_method"] = _site_summary(P[s])
-    return Outcome(rows + prows, summary, report, figs)
 
 
 def _site_summary(m: dict) -> dict:

@@ -215,7 +215,28 @@ def pass_job(
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
+    """The passes (:func:`run_passes`), Fig. 4, the summary and the report (the tilt study's
+    part last)."""
     reps = cfg.trials or 10
+    rows = run_passes(cfg, ctx, reps)
+    main = [r for r in rows if r["study"] == "main"]
+    summary: dict[str, Any] = {"passes": len(rows), "repetitions": reps}
+    summary["wall_s_by_strategy"] = {
+        s: float(sum(r["wall_s"] for r in rows if r["strategy"] == s))
+        for s in dict.fromkeys(r["strategy"] for r in rows)
+    }
+    overall = _overall(cfg, main, summary)
+    per_speed = _per_speed(cfg, main)
+    _boxplots(rows, cfg.strategies, cfg.speeds_cm_s, ctx.out / "fiducial_search.png")
+    report = _report(cfg, reps, overall, per_speed)
+    if cfg.tilt_study:
+        report += _tilt_report(cfg, rows, summary)
+    return Outcome(rows, summary, "\n".join(report), ["fiducial_search.png"])
+
+
+def run_passes(cfg: Config, ctx: Context, reps: int) -> list[dict[str, Any]]:
+    """Every pass (main study: strategy x speed x repetition; then the tilt study's) on
+    ``ctx``'s executor: their rows, in that order."""
     jobs = [
         ("main", s, v, r, cfg.noise)
         for s in cfg.strategies
@@ -245,21 +266,22 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         recs = run_trials(ctx, tasks, "passes")
     finally:
         clear_worlds()
-    rows = [{**x["result"], "worker_rss_mb": x["worker_rss_mb"]} for x in recs]
+    return [{**x["result"], "worker_rss_mb": x["worker_rss_mb"]} for x in recs]
 
-    main = [r for r in rows if r["study"] == "main"]
-    summary: dict[str, Any] = {"passes": len(rows), "repetitions": reps}
-    summary["wall_s_by_strategy"] = {
-        s: float(sum(r["wall_s"] for r in rows if r["strategy"] == s))
-        for s in dict.fromkeys(r["strategy"] for r in rows)
-    }
+
+def _search_times(sub: list[dict[str, Any]]) -> list[float]:
+    """The search times (s) of every interception of the passes ``sub``."""
+    return [float(x) for r in sub if r["search_times_s"] for x in r["search_times_s"].split(";")]
+
+
+def _overall(cfg: Config, main: list[dict[str, Any]], summary: dict[str, Any]) -> list[list]:
+    """Per strategy over the main study (into ``summary``): intercepted, search time, base
+    estimate and dead-reckoning errors beside the paper's figures; the table's lines."""
     overall = []
     for s in cfg.strategies:
         sub = [r for r in main if r["strategy"] == s]
         n = stats(r["intercepted"] for r in sub)
-        t = stats(
-            float(x) for r in sub if r["search_times_s"] for x in r["search_times_s"].split(";")
-        )
+        t = stats(_search_times(sub))
         est = stats(r["estimate_error_mm"] for r in sub)
         dr = stats(r["dead_reckoning_error_mm"] for r in sub)
         summary[s] = {
@@ -282,21 +304,28 @@ def run(cfg: Config, ctx: Context) -> Outcome:
                 dr["mean"],
             ]
         )
+    return overall
+
+
+def _per_speed(cfg: Config, main: list[dict[str, Any]]) -> list[list]:
+    """Per speed, per strategy: mean intercepted and mean search time (s)."""
     per_speed = []
     for v in cfg.speeds_cm_s:
         line: list[Any] = [f"{v:g}"]
         for s in cfg.strategies:
             sub = [r for r in main if r["strategy"] == s and r["speed_cm_s"] == v]
-            ts = [
-                float(x) for r in sub if r["search_times_s"] for x in r["search_times_s"].split(";")
-            ]
+            ts = _search_times(sub)
             line += [
                 float(np.mean([r["intercepted"] for r in sub])),
                 float(np.mean(ts)) if ts else math.nan,
             ]
         per_speed.append(line)
-    _boxplots(rows, cfg.strategies, cfg.speeds_cm_s, ctx.out / "fiducial_search.png")
-    report = [
+    return per_speed
+
+
+def _report(cfg: Config, reps: int, overall: list[list], per_speed: list[list]) -> list[str]:
+    """The main study's part of report.md (its paragraphs, joined by newlines)."""
+    return [
         f"{len(cfg.speeds_cm_s)} speeds x {reps} repetitions per strategy; base start within "
         f"{cfg.noise.initial_radius_99 * 100:g} cm (99 %), speed scale SD "
         f"{cfg.noise.speed_scale_sigma * 100:g} %, heading bias SD "
@@ -327,33 +356,33 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         ),
         "\n![Fig. 4](fiducial_search.png)\n",
     ]
-    if cfg.tilt_study:
-        tilt = [r for r in rows if r["study"] == "tilt"]
-        trows = []
-        for s in cfg.tilt_strategies:
-            sub = [r for r in tilt if r["strategy"] == s]
-            n = stats(r["intercepted"] for r in sub)
-            t = stats(
-                float(x) for r in sub if r["search_times_s"] for x in r["search_times_s"].split(";")
-            )
-            summary[f"tilt_{s}"] = {"intercepted_mean": n["mean"], "search_time_mean_s": t["mean"]}
-            trows.append([s, n["mean"], t["mean"], t["median"]])
-        report += [
-            f"\n## Beyond the paper: tilted base ({cfg.tilt_sigma_deg:g} deg SD roll and pitch)\n\n"
-            "A tilted base tilts the beam; through a 12.7 x 66.7 mm collimator the beam must be "
-            "within a few degrees of the tube axis. The 2D search keeps the tool vertical in the "
-            "base frame; the 6-DOF search samples roll/pitch hypotheses jointly with the "
-            "position (grid 14 mm x 2 deg, ordered by probability) and, as the tilt is constant "
-            "over a pass, centres later searches on the tilt of the last interception (z and "
-            "yaw do not change what a beam along a tube's axis sees, so 4 of the 6 DOF are "
-            "searched). A beam tilted by less than atan(12.7 / 66.7) = 10.8 deg still reaches "
-            "the reflector through a sliver of the tube, and the sensor is polled along the "
-            "whole path, so the 2D search degrades gracefully with tilt; a tilted search pays "
-            "off mainly on larger tilts.\n",
-            markdown_table(
-                ["strategy", "intercepted (of 6)", "mean search time (s)", "median (s)"],
-                trows,
-                2,
-            ),
-        ]
-    return Outcome(rows, summary, "\n".join(report), ["fiducial_search.png"])
+
+
+def _tilt_report(cfg: Config, rows: list[dict[str, Any]], summary: dict[str, Any]) -> list[str]:
+    """The tilt study (into ``summary``) and its part of report.md."""
+    tilt = [r for r in rows if r["study"] == "tilt"]
+    trows = []
+    for s in cfg.tilt_strategies:
+        sub = [r for r in tilt if r["strategy"] == s]
+        n = stats(r["intercepted"] for r in sub)
+        t = stats(_search_times(sub))
+        summary[f"tilt_{s}"] = {"intercepted_mean": n["mean"], "search_time_mean_s": t["mean"]}
+        trows.append([s, n["mean"], t["mean"], t["median"]])
+    return [
+        f"\n## Beyond the paper: tilted base ({cfg.tilt_sigma_deg:g} deg SD roll and pitch)\n\n"
+        "A tilted base tilts the beam; through a 12.7 x 66.7 mm collimator the beam must be "
+        "within a few degrees of the tube axis. The 2D search keeps the tool vertical in the "
+        "base frame; the 6-DOF search samples roll/pitch hypotheses jointly with the "
+        "position (grid 14 mm x 2 deg, ordered by probability) and, as the tilt is constant "
+        "over a pass, centres later searches on the tilt of the last interception (z and "
+        "yaw do not change what a beam along a tube's axis sees, so 4 of the 6 DOF are "
+        "searched). A beam tilted by less than atan(12.7 / 66.7) = 10.8 deg still reaches "
+        "the reflector through a sliver of the tube, and the sensor is polled along the "
+        "whole path, so the 2D search degrades gracefully with tilt; a tilted search pays "
+        "off mainly on larger tilts.\n",
+        markdown_table(
+            ["strategy", "intercepted (of 6)", "mean search time (s)", "median (s)"],
+            trows,
+            2,
+        ),
+    ]

@@ -47,7 +47,22 @@ def _iterations_to(rmse: np.ndarray, tol: float) -> int:
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
+    """Plan the batches (:func:`plan_batches`), plot the mean RMSE curves, write the report."""
     trials = cfg.trials or 10
+    rows, curves = plan_batches(cfg, ctx, trials)
+    summary, table = _plot_curves(cfg, curves, ctx.out / "planning_convergence.png")
+    its_all = [r["iterations_to_converge"] for r in rows]
+    summary["mean_iterations_to_converge"] = float(np.mean(its_all))
+    summary["max_iterations_to_converge"] = int(np.max(its_all))
+    report = _report(cfg, trials, table, summary)
+    return Outcome(rows, summary, report, ["planning_convergence.png"])
+
+
+def plan_batches(
+    cfg: Config, ctx: Context, trials: int
+) -> tuple[list[dict[str, Any]], dict[tuple[str, float], list[np.ndarray]]]:
+    """Per speed and trial a fiducial beside the track, a spiral and a stochastic batch
+    around it, planned by Algorithm 2: the rows and the RMSE curves per (strategy, speed)."""
     robot = default_robot()
     lim = ArmLimits.from_description(robot)
     ik = ToolPointIK(robot, z_sensor=-0.203, z_pivot=-0.267)  # artifact tubes, 3 cm standoff
@@ -82,7 +97,14 @@ def run(cfg: Config, ctx: Context) -> Outcome:
                 rows.append(row)
                 done += 1
                 ctx.progress("planning", done / n_total)
+    return rows, curves
 
+
+def _plot_curves(
+    cfg: Config, curves: dict[tuple[str, float], list[np.ndarray]], path
+) -> tuple[dict[str, Any], list[list]]:
+    """Fig. 3c (mean RMSE per iteration, per strategy and speed) to ``path``; the summary's
+    iterations per strategy and speed and the report's table lines."""
     fig = Figure(figsize=(10, 4))
     FigureCanvasAgg(fig)
     summary: dict[str, Any] = {}
@@ -101,11 +123,13 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         ax.set_title(f"{strat} search")
         ax.legend()
     fig.tight_layout()
-    fig.savefig(ctx.out / "planning_convergence.png", dpi=110)
-    its_all = [r["iterations_to_converge"] for r in rows]
-    summary["mean_iterations_to_converge"] = float(np.mean(its_all))
-    summary["max_iterations_to_converge"] = int(np.max(its_all))
-    report = (
+    fig.savefig(path, dpi=110)
+    return summary, table
+
+
+def _report(cfg: Config, trials: int, table: list[list], summary: dict[str, Any]) -> str:
+    """report.md: the set-up, the table, the paper's figure beside ours."""
+    return (
         "Algorithm 2 with ruckig rest-to-rest segments (UR5e limits), "
         f"{cfg.points} points per batch, {trials} runs per speed and strategy. Converged: "
         f"RMSE < {cfg.converged_m * 1000:g} mm.\n\n"
@@ -131,4 +155,3 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         + "n_iter count as n_iter + 1 (see results.csv).\n\n"
         + "![convergence](planning_convergence.png)\n"
     )
-    return Outcome(rows, summary, report, ["planning_convergence.png"])
