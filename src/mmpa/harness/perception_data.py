@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mmpa.backends.twin.error_model import ErrorModelConfig
+from mmpa.backends.twin.error_model import CameraNoise, ErrorModelConfig
 from mmpa.backends.twin.noise import color_noise
 from mmpa.backends.twin.sensors import SimCamera
 from mmpa.backends.twin.world import SimWorld
@@ -229,7 +229,27 @@ def boxes_from_segmentation(
 
 def render_dataset(cfg: DatasetConfig, log: object = None, progress: object = None) -> Dataset:
     """Render ``cfg.n_images`` labelled images (seeded by ``cfg.seed``)."""
+    errors = _checked_error_model(cfg)
+    rng = np.random.default_rng(cfg.seed)
+    world = SimWorld(site="0", errors=errors)
+    cam, noise = _dataset_camera(world, cfg, rng)
+    try:
+        samples, targets = _render_samples(world, cam, noise, rng, cfg, log, progress)
+    finally:
+        cam.close()
+        world.close()
+    return Dataset(
+        np.stack([s.image for s in samples]),
+        [s.boxes for s in samples],
+        [s.labels for s in samples],
+        np.array([s.lighting for s in samples], int),
+        np.array(targets, int),
+    )
 
+
+def _checked_error_model(cfg: DatasetConfig) -> ErrorModelConfig:
+    """The twin's error model of ``cfg.profile``; raises :class:`ConfigError` on a bad
+    object count range, an unknown lighting condition or profile."""
     if cfg.objects_max < cfg.objects_min:
         raise ConfigError("objects_max must be >= objects_min")
     unknown = set(cfg.lighting) - set(LIGHTING_CONDITIONS)
@@ -237,13 +257,18 @@ def render_dataset(cfg: DatasetConfig, log: object = None, progress: object = No
         raise ConfigError(f"unknown lighting {sorted(unknown)}; known {LIGHTING_CONDITIONS}")
 
     try:
-        errors = ErrorModelConfig(profile=cfg.profile)  # type: ignore[arg-type]
+        return ErrorModelConfig(profile=cfg.profile)  # type: ignore[arg-type]
     except ValueError:
         raise ConfigError(
             f"unknown error model profile {cfg.profile!r}; use ideal, reference, realistic or harsh"
         ) from None
-    rng = np.random.default_rng(cfg.seed)
-    world = SimWorld(site="0", errors=errors)
+
+
+def _dataset_camera(
+    world: SimWorld, cfg: DatasetConfig, rng: np.random.Generator
+) -> tuple[SimCamera, CameraNoise]:
+    """The wrist camera scaled to ``cfg.width`` x ``cfg.height`` (principal point centred)
+    with the error model's camera noise (drawn from ``rng``), and that noise model."""
     cam_desc = world.true_robot.camera
     k0 = cam_desc.color
     s = cfg.width / k0.width
@@ -258,6 +283,22 @@ def render_dataset(cfg: DatasetConfig, log: object = None, progress: object = No
     desc = cam_desc.model_copy(update={"color": k})
     noise = world.error_model.config.camera
     cam = SimCamera(world.model, world.data, desc, noise, rng, lambda: world.time)
+    return cam, noise
+
+
+def _render_samples(
+    world: SimWorld,
+    cam: SimCamera,
+    noise: CameraNoise,
+    rng: np.random.Generator,
+    cfg: DatasetConfig,
+    log: object,
+    progress: object,
+) -> tuple[list[Sample], list[int]]:
+    """The samples and their targets (class index, -1 for a random view): per image a base
+    pose (random views share one per 50), the objects and distractors (random colours), then
+    a working view (with ``cfg.work_view_prob``) or a random one; a view that fails is drawn
+    again."""
     body_ids = {world.model.body(n).id: i for i, n in enumerate(CLASSES)}
     distractors = [n for n in desk_object_names(world) if n not in CLASSES]
     dgeoms = [
@@ -268,62 +309,71 @@ def render_dataset(cfg: DatasetConfig, log: object = None, progress: object = No
     conds = list(cfg.lighting)
     pc = np.array([cfg.lighting[c] for c in conds], float)
     pc /= pc.sum()
-    images, boxes, labels, light, targets = [], [], [], [], []
-    try:
-        i = 0
-        was_work = False
-        while i < cfg.n_images:
-            # (no draw without working views: random-view data sets keep their old streams)
-            work = cfg.work_view_prob > 0 and bool(rng.random() < cfg.work_view_prob)
-            if i % 50 == 0 or work or was_work:  # random views share a base pose per 50
-                x, y, th = DESK_PARK
-                j = np.array(cfg.work_base_jitter if work else cfg.base_jitter)
-                pose = np.array([x, y, th]) + rng.uniform(-1, 1, 3) * j
-                world.reset(pose2d=pose, settle=0.0)
-            was_work = work
-            n_obj = int(rng.integers(cfg.objects_min, cfg.objects_max + 1))
-            objs = list(rng.choice(CLASSES, n_obj, replace=False))
-            dis = [d for d in distractors if rng.random() < cfg.distractor_prob]
-            for g in dgeoms:
-                world.model.geom_rgba[g, :3] = rng.uniform(0.05, 0.95, 3)
-            if work:
-                cond = conds[int(rng.choice(len(conds), p=pc))]
-                s = _work_view_sample(world, rng, cfg, cond, objs, dis, body_ids)
-                if s is None:
-                    continue
-                images.append(s.image)
-                boxes.append(s.boxes)
-                labels.append(s.labels)
-                targets.append(CLASSES.index(objs[0]))
-            else:
-                placed = random_table_scene(world, rng, objs, dis)
-                if not placed:
-                    continue
-                target = placed[str(rng.choice(list(placed)))] + rng.normal(0, 0.05, 3) * [1, 1, 0]
-                q = sample_view(world, rng, cfg, target)
-                if q is None:
-                    continue
-                world.set_arm_configuration(q)
-                cond = conds[int(rng.choice(len(conds), p=pc))]
-                world.set_lighting(float(rng.uniform(*LIGHT_RANGES[cond])))
-                color, _ = cam._render()
-                seg = cam.segmentation()
-                b, lab = boxes_from_segmentation(seg, body_ids, cfg.min_pixels)
-                noisy = noise.model_copy(update={"color_sigma": NOISE_SIGMA[cond]})
-                images.append(color_noise(color, rng, noisy))
-                boxes.append(b)
-                labels.append(lab)
-                targets.append(-1)
-            light.append(LIGHTING_CONDITIONS.index(cond))
-            i += 1
-            if progress is not None:
-                progress(i / cfg.n_images)  # type: ignore[operator]
-            if log is not None and i % 100 == 0:
-                log(f"rendered {i}/{cfg.n_images}")  # type: ignore[operator]
-    finally:
-        cam.close()
-        world.close()
-    return Dataset(np.stack(images), boxes, labels, np.array(light, int), np.array(targets, int))
+    samples: list[Sample] = []
+    targets: list[int] = []
+    i = 0
+    was_work = False
+    while i < cfg.n_images:
+        # (no draw without working views: random-view data sets keep their old streams)
+        work = cfg.work_view_prob > 0 and bool(rng.random() < cfg.work_view_prob)
+        if i % 50 == 0 or work or was_work:  # random views share a base pose per 50
+            x, y, th = DESK_PARK
+            j = np.array(cfg.work_base_jitter if work else cfg.base_jitter)
+            pose = np.array([x, y, th]) + rng.uniform(-1, 1, 3) * j
+            world.reset(pose2d=pose, settle=0.0)
+        was_work = work
+        n_obj = int(rng.integers(cfg.objects_min, cfg.objects_max + 1))
+        objs = list(rng.choice(CLASSES, n_obj, replace=False))
+        dis = [d for d in distractors if rng.random() < cfg.distractor_prob]
+        for g in dgeoms:
+            world.model.geom_rgba[g, :3] = rng.uniform(0.05, 0.95, 3)
+        if work:
+            cond = conds[int(rng.choice(len(conds), p=pc))]
+            s = _work_view_sample(world, rng, cfg, cond, objs, dis, body_ids)
+        else:
+            s = _random_view_sample(world, cam, noise, rng, cfg, conds, pc, objs, dis, body_ids)
+        if s is None:
+            continue
+        samples.append(s)
+        targets.append(CLASSES.index(objs[0]) if work else -1)
+        i += 1
+        if progress is not None:
+            progress(i / cfg.n_images)  # type: ignore[operator]
+        if log is not None and i % 100 == 0:
+            log(f"rendered {i}/{cfg.n_images}")  # type: ignore[operator]
+    return samples, targets
+
+
+def _random_view_sample(
+    world: SimWorld,
+    cam: SimCamera,
+    noise: CameraNoise,
+    rng: np.random.Generator,
+    cfg: DatasetConfig,
+    conds: list[str],
+    pc: Array,
+    objs: list[str],
+    dis: list[str],
+    body_ids: dict[int, int],
+) -> Sample | None:
+    """One random view (module doc): the objects anywhere on the desk, a view of one of them
+    (aim jittered by 5 cm), a light condition drawn by ``pc`` with a jittered factor, the
+    condition's extra sensor noise; None when nothing was placed or the view is unreachable."""
+    placed = random_table_scene(world, rng, objs, dis)
+    if not placed:
+        return None
+    target = placed[str(rng.choice(list(placed)))] + rng.normal(0, 0.05, 3) * [1, 1, 0]
+    q = sample_view(world, rng, cfg, target)
+    if q is None:
+        return None
+    world.set_arm_configuration(q)
+    cond = conds[int(rng.choice(len(conds), p=pc))]
+    world.set_lighting(float(rng.uniform(*LIGHT_RANGES[cond])))
+    color, _ = cam._render()
+    seg = cam.segmentation()
+    b, lab = boxes_from_segmentation(seg, body_ids, cfg.min_pixels)
+    noisy = noise.model_copy(update={"color_sigma": NOISE_SIGMA[cond]})
+    return Sample(color_noise(color, rng, noisy), b, lab, LIGHTING_CONDITIONS.index(cond))
 
 
 def _work_view_sample(
