@@ -23,7 +23,7 @@ Two kinds of viewpoint:
   target's top (the tracking and final standoffs lie in this range), offset laterally by up
   to ``work_servo_jitter`` and turned to a random yaw; the camera sits beside the tool axis,
   so the target appears off-center, often cut by the lower image border (where the servo
-  sees it: detections flickering there lost the track in high light).
+  sees it; docs/experiments.md).
 
 This module drives the simulator (a data generator, like an operator); the data set itself
 (:class:`~mmpa.perception.dataset.Dataset`) lives in :mod:`mmpa.perception.dataset`, which the

@@ -11,8 +11,7 @@ Reported per method: mean position error before the dropout, peak error during a
 and the time after the dropout ends until the error is back under ``recovered_below`` for 1 s.
 Reference (the sensor limit during the dropout): the pose from ONE scan of the reflectors still
 visible (two or more; range and bearing least squares, associated with their landmarks by the
-truth), i.e. what a filter would have without odometry or history; the odometry (alphas 0.05,
-about 56 mm / 56 mrad per 25 cm) adds little on top of it.
+truth), i.e. what a filter would have without odometry or history (docs/experiments.md).
 
 Second part: accuracy vs the number of visible reflectors, at the goal site, standing still:
 ``k`` reflectors left visible (random subsets), single-scan trilateration error and the
@@ -30,6 +29,7 @@ default); its seed, the robot instance, follows ``seed`` unless ``errors.seed`` 
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from typing import Any
 
 import numpy as np
@@ -42,8 +42,9 @@ from mmpa.core.geometry import wrap_angle
 from mmpa.experiments.paper001.localization import TwinLocalization, method_mounts
 from mmpa.harness.recording import recording_folder, trial_recorder
 from mmpa.harness.runner import Context, Outcome, markdown_table, run_trials, stats
-from mmpa.localization.localizer import METHODS, _observer, make_localizer
+from mmpa.localization.localizer import METHODS, Localizer, _observer, make_localizer
 from mmpa.localization.trilateration import trilaterate
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.navigation.follower import FollowerConfig, PathFollower
 from mmpa.navigation.planner import CostMap, plan_path
 
@@ -148,8 +149,6 @@ def _dropout_run(
     ROS 2 bag (``method-M-site-0-trial-k.mcap``, ``M`` the enhanced AMCL when it runs, else
     the first method: the scans as the localizers read them, with the people in them, the
     odometry, the map, M's estimates and particles, the truth; ``--record``)."""
-    from contextlib import ExitStack
-
     rng = np.random.default_rng([cfg.seed, k])
     with SimWorld(errors=cfg.errors, site="0", episode=k) as world, ExitStack() as stack:
         grid = twin_map(world)
@@ -158,16 +157,7 @@ def _dropout_run(
         start_heading = float(np.arctan2(*(route[1] - route[0])[::-1]))
         world.reset(pose2d=np.array([*route[0], start_heading]))
         lp = laser_pose2d(world)
-        mounts = mounts or {}
-        locs = {  # each method's generator keyed by its name, not its place in the list
-            m: make_localizer(
-                m,
-                grid,
-                lp if mounts.get(m) is None else mounts[m],
-                np.random.default_rng([cfg.seed, k, METHODS.index(m)]),
-            )
-            for m in cfg.methods
-        }
+        locs = _localizers(cfg, k, grid, lp, mounts or {})
         sensors: Any = world  # where the localizers' scans and odometry are read
         if record is not None:  # the same run, observed (the harness keeps the world)
             m0 = "enhanced" if "enhanced" in locs else cfg.methods[0]
@@ -180,84 +170,100 @@ def _dropout_run(
         guess = rough_initial_pose(world, rng)
         for loc in locs.values():
             loc.initialize(guess.copy())
-        n_ref = len(world.map_reflectors)
-        fcfg = FollowerConfig(max_v=cfg.speed, approach_radius=0.3)
-        follower = PathFollower(route, np.array([*route[-1], 0.0]), fcfg)
-        dt = 1.0 / cfg.scan_rate
-        t0 = world.time
-        ref_observer = _observer(grid, lp, None)
-        trace: dict[str, list[Any]] = {
-            "t": [],
-            "visible": [],
-            "single_scan": [],
-            **{m: [] for m in cfg.methods},
-        }
-        hidden = np.array([], dtype=int)
-        while world.time - t0 < 200.0:
-            t = world.time - t0
-            in_drop = cfg.dropout_start <= t < cfg.dropout_end
-            if in_drop and hidden.size == 0:
-                keep = rng.choice(n_ref, cfg.visible_during_dropout, replace=False)
-                hidden = np.setdiff1d(np.arange(n_ref), keep)
-            if not in_drop:
-                hidden = np.array([], dtype=int)
-            world.lidar.occluders = _occluders(world, hidden, cfg) if hidden.size else []
-            v, w, _ = follower.command(world.truth.base_pose2d())  # harness drives on truth
-            if follower.final_phase:
-                break
-            world.base.set_velocity(v, w)
-            world.step(dt)
-            odom = sensors.odometry.odometry().pose
-            scan = sensors.lidar.scan()
-            truth = world.truth.base_pose2d()
-            trace["t"].append(world.time - t0)
-            vis = None
-            for m, loc in locs.items():
-                loc.update(odom, scan)
-                est = loc.pose_at(odom)
-                e = est - truth
-                trace[m].append([float(np.hypot(e[0], e[1])), abs(float(wrap_angle(e[2])))])
-                obs = getattr(loc, "observer", None)
-                if vis is None and obs is not None:
-                    vis = len(obs.last_detections)
-            trace["visible"].append(-1 if vis is None else vis)
-            trace["single_scan"].append(
-                _single_scan_fix(world, ref_observer, scan) if in_drop else float("nan")
-            )
+        trace = _drive_loop(cfg, world, sensors, locs, route, rng, grid, lp)
         world.lidar.occluders = []
         world.base.stop()
-    t = np.array(trace["t"])
-    rows = []
-    for m in cfg.methods:
-        e = np.array(trace[m])
-        pre = (t < cfg.dropout_start) & (t > 3.0)
-        dur = (t >= cfg.dropout_start) & (t < cfg.dropout_end)
-        post = t >= cfg.dropout_end
-        ok = e[:, 0] < cfg.recovered_below
-        rec = float("nan")
-        idx = np.flatnonzero(post)
-        for i in idx:
-            j = i + round(cfg.scan_rate)
-            if j <= len(ok) and ok[i:j].all():
-                rec = float(t[i] - cfg.dropout_end)
-                break
-        rows.append(
-            {
-                "run": k,
-                "method": m,
-                "err_before_mm": 1000 * float(e[pre, 0].mean()) if pre.any() else float("nan"),
-                "err_peak_during_mm": 1000 * float(e[dur, 0].max()) if dur.any() else float("nan"),
-                "err_mean_during_mm": 1000 * float(e[dur, 0].mean()) if dur.any() else float("nan"),
-                "err_p95_during_mm": 1000 * float(np.percentile(e[dur, 0], 95))
-                if dur.any()
-                else float("nan"),
-                "err_peak_after_mm": 1000 * float(e[post, 0].max()) if post.any() else float("nan"),
-                "recovery_s": rec,
-                "min_visible_during": int(np.min(np.array(trace["visible"])[dur]))
-                if dur.any()
-                else -1,
-            }
+    return _dropout_rows(cfg, k, trace), {k2: np.asarray(v) for k2, v in trace.items()}
+
+
+def _localizers(
+    cfg: Config,
+    k: int,
+    grid: OccupancyGrid,
+    lp: np.ndarray,
+    mounts: dict[str, np.ndarray | None],
+) -> dict[str, Localizer]:
+    """Each method's localizer on ``grid`` with its mount (the calibrated one in ``mounts``,
+    else the nominal ``lp``); each method's generator keyed by its name, not its place in
+    the list."""
+    return {
+        m: make_localizer(
+            m,
+            grid,
+            lp if mounts.get(m) is None else mounts[m],
+            np.random.default_rng([cfg.seed, k, METHODS.index(m)]),
         )
+        for m in cfg.methods
+    }
+
+
+def _drive_loop(
+    cfg: Config,
+    world: SimWorld,
+    sensors: Any,
+    locs: dict[str, Localizer],
+    route: np.ndarray,
+    rng: np.random.Generator,
+    grid: OccupancyGrid,
+    lp: np.ndarray,
+) -> dict[str, list[Any]]:
+    """Follow ``route`` on the true pose, every method on the same odometry and scans; from
+    ``dropout_start`` to ``dropout_end`` people hide all but ``visible_during_dropout``
+    reflectors (drawn from ``rng``). The trace per scan: time, reflectors detected, the
+    single-scan reference (during the dropout) and each method's [position, yaw] error."""
+    n_ref = len(world.map_reflectors)
+    fcfg = FollowerConfig(max_v=cfg.speed, approach_radius=0.3)
+    follower = PathFollower(route, np.array([*route[-1], 0.0]), fcfg)
+    dt = 1.0 / cfg.scan_rate
+    t0 = world.time
+    ref_observer = _observer(grid, lp, None)
+    trace: dict[str, list[Any]] = {
+        "t": [],
+        "visible": [],
+        "single_scan": [],
+        **{m: [] for m in cfg.methods},
+    }
+    hidden = np.array([], dtype=int)
+    while world.time - t0 < 200.0:
+        t = world.time - t0
+        in_drop = cfg.dropout_start <= t < cfg.dropout_end
+        if in_drop and hidden.size == 0:
+            keep = rng.choice(n_ref, cfg.visible_during_dropout, replace=False)
+            hidden = np.setdiff1d(np.arange(n_ref), keep)
+        if not in_drop:
+            hidden = np.array([], dtype=int)
+        world.lidar.occluders = _occluders(world, hidden, cfg) if hidden.size else []
+        v, w, _ = follower.command(world.truth.base_pose2d())  # harness drives on truth
+        if follower.final_phase:
+            break
+        world.base.set_velocity(v, w)
+        world.step(dt)
+        odom = sensors.odometry.odometry().pose
+        scan = sensors.lidar.scan()
+        truth = world.truth.base_pose2d()
+        trace["t"].append(world.time - t0)
+        vis = None
+        for m, loc in locs.items():
+            loc.update(odom, scan)
+            est = loc.pose_at(odom)
+            e = est - truth
+            trace[m].append([float(np.hypot(e[0], e[1])), abs(float(wrap_angle(e[2])))])
+            obs = getattr(loc, "observer", None)
+            if vis is None and obs is not None:
+                vis = len(obs.last_detections)
+        trace["visible"].append(-1 if vis is None else vis)
+        trace["single_scan"].append(
+            _single_scan_fix(world, ref_observer, scan) if in_drop else float("nan")
+        )
+    return trace
+
+
+def _dropout_rows(cfg: Config, k: int, trace: dict[str, list[Any]]) -> list[dict[str, Any]]:
+    """Run ``k``'s row per method (errors before, during and after the dropout in mm, the
+    recovery time in s) and the single-scan reference's row."""
+    t = np.array(trace["t"])
+    dur = (t >= cfg.dropout_start) & (t < cfg.dropout_end)
+    rows = [_method_row(cfg, k, m, t, np.array(trace[m]), trace["visible"]) for m in cfg.methods]
     fix = np.array(trace["single_scan"])[dur] if dur.any() else np.array([])
     fix = fix[np.isfinite(fix)]
     rows.append(
@@ -273,7 +279,38 @@ def _dropout_run(
             "min_visible_during": rows[-1]["min_visible_during"] if rows else -1,
         }
     )
-    return rows, {k2: np.asarray(v) for k2, v in trace.items()}
+    return rows
+
+
+def _method_row(
+    cfg: Config, k: int, m: str, t: np.ndarray, e: np.ndarray, visible: list[int]
+) -> dict[str, Any]:
+    """Method ``m``'s row from its error trace ``e`` (n, 2) at times ``t`` (s): recovered
+    when the position error stays under ``recovered_below`` for 1 s after the dropout."""
+    pre = (t < cfg.dropout_start) & (t > 3.0)
+    dur = (t >= cfg.dropout_start) & (t < cfg.dropout_end)
+    post = t >= cfg.dropout_end
+    ok = e[:, 0] < cfg.recovered_below
+    rec = float("nan")
+    idx = np.flatnonzero(post)
+    for i in idx:
+        j = i + round(cfg.scan_rate)
+        if j <= len(ok) and ok[i:j].all():
+            rec = float(t[i] - cfg.dropout_end)
+            break
+    return {
+        "run": k,
+        "method": m,
+        "err_before_mm": 1000 * float(e[pre, 0].mean()) if pre.any() else float("nan"),
+        "err_peak_during_mm": 1000 * float(e[dur, 0].max()) if dur.any() else float("nan"),
+        "err_mean_during_mm": 1000 * float(e[dur, 0].mean()) if dur.any() else float("nan"),
+        "err_p95_during_mm": 1000 * float(np.percentile(e[dur, 0], 95))
+        if dur.any()
+        else float("nan"),
+        "err_peak_after_mm": 1000 * float(e[post, 0].max()) if post.any() else float("nan"),
+        "recovery_s": rec,
+        "min_visible_during": int(np.min(np.array(visible)[dur])) if dur.any() else -1,
+    }
 
 
 def _visible_count(cfg: Config, mount: np.ndarray | None = None) -> list[dict[str, Any]]:
@@ -343,11 +380,30 @@ def visible_job(cfg_json: str, mount: list[float] | None) -> list[dict[str, Any]
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
+    """The dropout runs and the visible-reflector study (:func:`run_dropouts`), the summary per
+    method and per visible count, the report and Fig. 10."""
     for m in cfg.methods:
         if m not in METHODS:
             raise ValueError(f"unknown method {m!r}; valid: {', '.join(METHODS)}")
     n = cfg.trials if cfg.trials is not None else 1
     mounts = method_mounts(cfg, [*cfg.methods, "enhanced"], cfg.site)
+    rows, trace0, vis_rows = run_dropouts(cfg, ctx, n, mounts)
+    summary: dict[str, Any] = {"runs": n, "methods": {}}
+    cal = next((v for v in mounts.values() if v is not None), None)
+    summary["calibrated_mount"] = None if cal is None else [float(x) for x in cal]
+    table = _method_table(cfg, rows, summary)
+    vis_table = _visible_table(cfg, vis_rows, summary)
+    report = _report(cfg, n, rows, mounts, table, vis_table)
+    figs = _plot(ctx, cfg, trace0)
+    report += "\n" + "\n".join(f"![{f}]({f})" for f in figs) + "\n"
+    return Outcome(rows + vis_rows, summary, report, figs)
+
+
+def run_dropouts(
+    cfg: Config, ctx: Context, n: int, mounts: dict[str, np.ndarray | None]
+) -> tuple[list[dict[str, Any]], dict[str, Any], list[dict[str, Any]]]:
+    """``n`` dropout runs and the visible-reflector study on ``ctx``'s executor: the runs'
+    rows, run 0's trace and the study's rows."""
     ml = {m: None if v is None else [float(x) for x in v] for m, v in mounts.items()}
     cfg_json = cfg.model_dump_json()
 
@@ -357,10 +413,14 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     recs = run_trials(ctx, jobs, "runs")
     rows: list[dict[str, Any]] = [x for r in recs[:n] for x in r["result"]["rows"]]
     trace0: dict[str, Any] = {k: np.asarray(v) for k, v in recs[0]["result"]["trace"].items()}
-    vis_rows = recs[n]["result"]
-    summary: dict[str, Any] = {"runs": n, "methods": {}}
-    cal = next((v for v in mounts.values() if v is not None), None)
-    summary["calibrated_mount"] = None if cal is None else [float(x) for x in cal]
+    return rows, trace0, recs[n]["result"]
+
+
+def _method_table(
+    cfg: Config, rows: list[dict[str, Any]], summary: dict[str, Any]
+) -> list[list[Any]]:
+    """Per method (and the single-scan reference) into ``summary["methods"]``: the means
+    over runs, the worst p95 and peak, no spike, the fraction recovered; the table's lines."""
     table = []
     for m in [*cfg.methods, "single-scan"]:
         r = [x for x in rows if x["method"] == m]
@@ -406,6 +466,14 @@ def run(cfg: Config, ctx: Context) -> Outcome:
                 "–" if m == "single-scan" else ("yes" if s["no_spike"] else "no"),
             ]
         )
+    return table
+
+
+def _visible_table(
+    cfg: Config, vis_rows: list[dict[str, Any]], summary: dict[str, Any]
+) -> list[list[Any]]:
+    """Per visible-reflector count into ``summary["visible"]``: the trilateration fix rate
+    and error, the enhanced AMCL's errors (mm, mrad); the table's lines."""
     vis_table = []
     summary["visible"] = {}
     for kvis in cfg.visible_counts:
@@ -426,8 +494,21 @@ def run(cfg: Config, ctx: Context) -> Outcome:
                 s["enhanced_theta_mrad"],
             ]
         )
+    return vis_table
+
+
+def _report(
+    cfg: Config,
+    n: int,
+    rows: list[dict[str, Any]],
+    mounts: dict[str, np.ndarray | None],
+    table: list[list[Any]],
+    vis_table: list[list[Any]],
+) -> str:
+    """report.md without the figures: the set-up, the definitions, both tables."""
+    cal = next((v for v in mounts.values() if v is not None), None)
     min_vis = [x["min_visible_during"] for x in rows]
-    report = (
+    return (
         f"{n} run(s); reflectors occluded from t = {cfg.dropout_start:.0f} s to "
         f"{cfg.dropout_end:.0f} s (fewest reflectors detected during it: {min(min_vis)} to "
         f"{max(min_vis)} per run). "
@@ -478,9 +559,6 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             digits=2,
         )
     )
-    figs = _plot(ctx, cfg, trace0)
-    report += "\n" + "\n".join(f"![{f}]({f})" for f in figs) + "\n"
-    return Outcome(rows + vis_rows, summary, report, figs)
 
 
 def _plot(ctx: Context, cfg: Config, tr: dict[str, Any]) -> list[str]:
