@@ -23,6 +23,7 @@ calibrated mount; the others (the paper's methods) keep the nominal one.
 from __future__ import annotations
 
 import time
+from contextlib import ExitStack
 from typing import Any
 
 import numpy as np
@@ -177,8 +178,6 @@ def _trial(
     """Navigation trial ``k`` of ``method``: its row and trace. ``record``: a folder for the
     trial's ROS 2 bag (``method-M-site-0-trial-k.mcap``: scans, odometry, the map, the
     estimates, the particles, the truth; ``mmpa experiment --record``)."""
-    from contextlib import ExitStack
-
     rng = np.random.default_rng([cfg.seed, k])
     with SimWorld(errors=cfg.errors, site="0", episode=k) as world, ExitStack() as stack:
         nav = CostMap(twin_nav_map(world, cfg.resolution))
@@ -283,12 +282,32 @@ def kidnap_job(cfg_json: str, k: int, method: str, mount: list[float] | None) ->
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
-
+    """The navigation and kidnap trials (:func:`run_localization_trials`), the summary per
+    method beside Table 2, Fig. 9 and the report."""
     for m in cfg.methods:
         if m not in METHODS:
             raise ValueError(f"unknown method {m!r}; valid: {', '.join(METHODS)}")
     n = cfg.trials if cfg.trials is not None else 20
     mounts = method_mounts(cfg, cfg.methods, cfg.goal_site)
+    rows, traces, kid_rows = run_localization_trials(cfg, ctx, n, mounts)
+    summary: dict[str, Any] = {"trials_per_method": n, "methods": {}}
+    cal = next((v for v in mounts.values() if v is not None), None)
+    summary["calibrated_mount"] = None if cal is None else [float(x) for x in cal]
+    table = _method_table(cfg, rows, kid_rows, summary)
+    figs = _plots(ctx, traces)
+    report = _report(cfg, n, mounts, table)
+    if kid_rows:
+        report += _kidnap_report(cfg, summary)
+    if figs:
+        report += "\n" + "\n".join(f"![{f}]({f})" for f in figs) + "\n"
+    return Outcome(rows + kid_rows, summary, report, figs)
+
+
+def run_localization_trials(
+    cfg: Config, ctx: Context, n: int, mounts: dict[str, np.ndarray | None]
+) -> tuple[list[dict[str, Any]], dict[str, dict[str, np.ndarray]], list[dict[str, Any]]]:
+    """``n`` navigation trials and ``cfg.kidnap_trials`` kidnap trials per method on
+    ``ctx``'s executor: the navigation rows, trial 0's trace per method, the kidnap rows."""
     ml = {m: None if v is None else [float(x) for x in v] for m, v in mounts.items()}
     cfg_json = cfg.model_dump_json()
     rec = recording_folder()  # mmpa experiment --record
@@ -311,11 +330,17 @@ def run(cfg: Config, ctx: Context) -> Outcome:
         if res["trace"] is not None:
             traces[res["row"]["method"]] = {k: np.asarray(v) for k, v in res["trace"].items()}
     kid_rows = [r["result"] for r in recs[n * len(cfg.methods) :]]
+    return rows, traces, kid_rows
 
-    summary: dict[str, Any] = {"trials_per_method": n, "methods": {}}
-    cal = next((v for v in mounts.values() if v is not None), None)
-    cal_methods = ", ".join(k for k, v in mounts.items() if v is not None)
-    summary["calibrated_mount"] = None if cal is None else [float(x) for x in cal]
+
+def _method_table(
+    cfg: Config,
+    rows: list[dict[str, Any]],
+    kid_rows: list[dict[str, Any]],
+    summary: dict[str, Any],
+) -> list[list[Any]]:
+    """Per method into ``summary["methods"]``: mean errors (cm, rad), success, parking,
+    reached, the kidnap recovery; the table's lines beside the paper's Table 2."""
     table = []
     for m in cfg.methods:
         r = [x for x in rows if x["method"] == m]
@@ -351,9 +376,17 @@ def run(cfg: Config, ctx: Context) -> Outcome:
                 ),
             ]
         )
-    figs = _plots(ctx, traces)
+    return table
+
+
+def _report(
+    cfg: Config, n: int, mounts: dict[str, np.ndarray | None], table: list[list[Any]]
+) -> str:
+    """report.md's first part: the set-up, the mount, the table beside Table 2."""
+    cal = next((v for v in mounts.values() if v is not None), None)
+    cal_methods = ", ".join(k for k, v in mounts.items() if v is not None)
     sxy, sth = initial_sigmas(cfg)
-    report = (
+    return (
         f"{n} runs per method, random corridor start, rough initial pose "
         f"(sigma {sxy * 100:.0f} cm / {sth:.2f} rad), target: site "
         f"{cfg.goal_site}. Position error = final estimate vs truth (paper's measure); success = "
@@ -384,8 +417,13 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             digits=3,
         )
     )
-    if kid_rows:
-        report += "\n## Kidnapped robot\n\n" + markdown_table(
+
+
+def _kidnap_report(cfg: Config, summary: dict[str, Any]) -> str:
+    """report.md's kidnapped-robot part."""
+    return (
+        "\n## Kidnapped robot\n\n"
+        + markdown_table(
             ["method", "recovered", "median recovery (s)"],
             [
                 [
@@ -396,15 +434,11 @@ def run(cfg: Config, ctx: Context) -> Outcome:
                 for m in cfg.methods
             ],
         )
-        report += (
-            f"\nCarried from site {cfg.goal_site} to site {cfg.kidnap_site} unannounced, then "
-            f"turning at 0.25 rad/s for up to {cfg.kidnap_duration:.0f} s; AMCL runs with "
-            "recovery_alpha_slow/fast = "
-            f"{cfg.kidnap_amcl.recovery_alpha_slow}/{cfg.kidnap_amcl.recovery_alpha_fast}.\n"
-        )
-    if figs:
-        report += "\n" + "\n".join(f"![{f}]({f})" for f in figs) + "\n"
-    return Outcome(rows + kid_rows, summary, report, figs)
+        + f"\nCarried from site {cfg.goal_site} to site {cfg.kidnap_site} unannounced, then "
+        f"turning at 0.25 rad/s for up to {cfg.kidnap_duration:.0f} s; AMCL runs with "
+        "recovery_alpha_slow/fast = "
+        f"{cfg.kidnap_amcl.recovery_alpha_slow}/{cfg.kidnap_amcl.recovery_alpha_fast}.\n"
+    )
 
 
 def _plots(ctx: Context, traces: dict[str, dict[str, np.ndarray]]) -> list[str]:
