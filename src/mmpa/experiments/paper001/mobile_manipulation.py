@@ -25,9 +25,8 @@ One run (paper 001 §4.2.2, Fig. 15):
    of Fig. 15 d, e). *Navigation success* is the paper's criterion (§4.3.1): the final
    position estimate within ``success_threshold`` (12 mm) of the truth, with the robot at the
    desk (truth within ``arrive_tol`` of the grasp pose). The go-to-pose controller's own
-   ``reached`` flag (3 mm / 3 mrad) is recorded but not required. (Without the turn at the
-   entry pose the base arrived up to 0.3 rad off and could not turn on the spot 0.40 m from
-   the desk: its final approach timed out.)
+   ``reached`` flag (3 mm / 3 mrad) is recorded but not required. (Why the turn at the entry
+   pose: docs/experiments.md.)
 6. **Detect and grasp**: the arm looks down at the desk (the ``grasp`` experiment's first
    view) and runs the tracking grasp (:class:`mmpa.servo.grasp.TrackingGrasp`, unchanged).
    *Detection success*: the target detected in that first frame (Table 3's definition).
@@ -41,6 +40,7 @@ and the grasp success among runs with a detection.
 from __future__ import annotations
 
 import time
+from contextlib import ExitStack
 from typing import Any
 
 import numpy as np
@@ -68,9 +68,10 @@ from mmpa.harness.recording import recording_folder, trial_recorder
 from mmpa.harness.runner import Context, Outcome, markdown_table, stats
 from mmpa.harness.twin_localization import errors_follow_seed, twin_localizer
 from mmpa.localization.localizer import METHODS, Localizer
+from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.missions import desk_search
 from mmpa.missions.desk_search import turn_to_heading
-from mmpa.missions.navigate import NavigateConfig, localize_standing, navigate
+from mmpa.missions.navigate import NavigateConfig, NavigationResult, localize_standing, navigate
 from mmpa.navigation.planner import CostMap, plan_path
 from mmpa.perception import CLASSES
 from mmpa.servo.grasp import look_configuration
@@ -105,10 +106,9 @@ class Config(BaseModel):
     init_sigma_theta: float | None = Field(None, ge=0)
     resolution: float = Field(0.05, gt=0)
     # rad (map): heading at the work-area entry pose; None: the direction the planned path
-    # arrives in (the go-to-pose controller turns badly on the spot at 3 mm tolerance)
+    # arrives in (why: docs/experiments.md)
     entry_heading: float | None = None
-    # m: the entry pose is this far back from the grasp pose (the base, 0.48 m circumscribed
-    # radius, cannot turn on the spot 0.40 m from the desk)
+    # m: the entry pose is this far back from the grasp pose (where the base has room to turn)
     entry_back: float = Field(0.25, ge=0)
     search_w: float = Field(0.4, gt=0)  # rad/s, turning speed while looking for the desk
     search_timeout: float = Field(20.0, gt=0)  # s
@@ -116,7 +116,7 @@ class Config(BaseModel):
     leg_points: int = Field(2, ge=1)
     face_tol: float = Field(0.3, gt=0)  # rad
     # rad: after the search, turn to the grasp pose's heading within this tolerance before the
-    # final approach (0: skip; the base then has to turn next to the desk, where it cannot)
+    # final approach (0: skip)
     align_tol: float = Field(0.003, ge=0)
     align_timeout: float = Field(10.0, gt=0)  # s
     success_threshold: float = Field(0.012, gt=0)  # m (paper: 12 mm)
@@ -184,8 +184,6 @@ def mm_trial(
     """One run (module doc); truth read only for the evaluation columns. ``record``: a folder
     for the run's ROS 2 bag (``object-NAME-site-0-trial-k.mcap``: scans, odometry, the map,
     the estimates, every camera frame, the arm at 50 Hz, the truth; ``--record``)."""
-    from contextlib import ExitStack
-
     rng = np.random.default_rng([cfg.seed, k, CLASSES.index(name)])
     w0 = time.perf_counter()
     with SimWorld(errors=cfg.errors, site="0", episode=k) as world, ExitStack() as stack:
@@ -194,60 +192,9 @@ def mm_trial(
             label = {"object": name}
             rec = stack.enter_context(trial_recorder(record, label, "0", k, world, ARM_RATE_HZ))
             world = rec.world()
-        nav = CostMap(twin_nav_map(world, cfg.resolution))
-        start = corridor_start(nav, rng, cfg)
-        guess = rough_pose(start, rng, *initial_sigmas(cfg))  # the operator's rough pose
-        world.reset(pose2d=start, settle=0.2)
-        place_trial_objects(world, rng, name, cfg.others)
-        world.set_lighting(cfg.lighting)
-        world.step(0.3)
-        grid = twin_map(world, cfg.resolution)
-        costmap = CostMap(twin_nav_map(world, cfg.resolution))
-        loc = twin_localizer(world, cfg.method, np.random.default_rng([cfg.seed, k, 7]), grid=grid)
-        if rec is not None:
-            rec.write_map(grid)
-            loc = rec.localizer(loc)
-        loc.initialize(guess)
-        park = np.array(DESK_PARK)
-        back = cfg.entry_back * np.array([np.cos(park[2]), np.sin(park[2])])
-        entry = np.array([*(park[:2] - back), 0.0])
-        if cfg.entry_heading is None:  # planned from the localizer's first estimate
-            n0 = max(cfg.navigate.initial_scans, 1)
-            est0 = localize_standing(world, loc, n0, cfg.navigate.scan_rate)
-            path = plan_path(costmap, est0[:2], entry[:2])
-            d = path[-1] - path[max(len(path) - 2, 0)]
-            entry[2] = float(np.arctan2(d[1], d[0]))
-        else:
-            entry[2] = cfg.entry_heading
-        r1 = navigate(
-            world, loc, grid, entry, cfg.navigate, costmap=costmap, truth=world.truth.base_pose2d
-        )
-        found, t_search = search_desk(world, loc, cfg)
-        aligned = (
-            turn_to_heading(world, loc, float(park[2]), cfg.align_tol, cfg.align_timeout)[0]
-            if cfg.align_tol > 0
-            else False
-        )
-        r2 = navigate(
-            world, loc, grid, park, cfg.navigate, costmap=costmap, truth=world.truth.base_pose2d
-        )
-        e = r2.localization_error
-        loc_err = float(np.hypot(e[0], e[1]))
-        nav_ok = bool(loc_err < cfg.success_threshold and r2.parking_error_xy < cfg.arrive_tol)
-        # detection and grasp from the grasp experiment's first view, aimed with the
-        # localization estimate: the point the first view sees from the grasp pose (the
-        # base may stop 0.1-0.3 rad off its heading next to the desk, where it cannot turn on
-        # the spot; a fixed arm-base target then leaves objects near the region's edge out)
-        _, top, _ = desk_frame(world)
-        rb = world.nominal
-        T_ba = rb.T_base_link_arm_base
-        p_look = se2_to_T(*park) @ T_ba @ np.array([*LOOK_TARGET, 0.0, 1.0])
-        look_xy = (inv(se2_to_T(*r2.final_estimate) @ T_ba) @ p_look)[:2]
-        look = np.array([*look_xy, top - T_ba[2, 3]])
-        q_look = look_configuration(rb, look, LOOK_HEIGHT)
-        world.arm.move_joints(q_look)
-        res = run_grasp(world, grasper, name, world.step)
-        held = held_in_the_physics(world, name, top)
+        start, loc, grid, costmap = _set_up_run(cfg, k, name, world, rng, rec)
+        nav, r2 = _drive_to_desk(cfg, world, loc, grid, costmap)
+        res, held = _detect_and_grasp(world, grasper, name, r2.final_estimate)
         sim_t = world.time
     return {
         "object": name,
@@ -255,6 +202,71 @@ def mm_trial(
         "start_x": start[0],
         "start_y": start[1],
         "start_theta": start[2],
+        **nav,
+        "detected": res.detected_first,
+        "grasped": held,
+        "reason": res.reason if held or res.reason != "grasped" else "dropped",
+        "sim_seconds": sim_t,
+        "wall_seconds": time.perf_counter() - w0,
+    }
+
+
+def _set_up_run(
+    cfg: Config, k: int, name: str, world: Any, rng: np.random.Generator, rec: Any
+) -> tuple[np.ndarray, Localizer, OccupancyGrid, CostMap]:
+    """Stage 1: a clear corridor start and the operator's rough pose of it, the objects on
+    the desk, the light; the map, the costmap and the localizer (from the rough pose).
+    Returns ``(start, localizer, map, costmap)``."""
+    nav = CostMap(twin_nav_map(world, cfg.resolution))
+    start = corridor_start(nav, rng, cfg)
+    guess = rough_pose(start, rng, *initial_sigmas(cfg))  # the operator's rough pose
+    world.reset(pose2d=start, settle=0.2)
+    place_trial_objects(world, rng, name, cfg.others)
+    world.set_lighting(cfg.lighting)
+    world.step(0.3)
+    grid = twin_map(world, cfg.resolution)
+    costmap = CostMap(twin_nav_map(world, cfg.resolution))
+    loc = twin_localizer(world, cfg.method, np.random.default_rng([cfg.seed, k, 7]), grid=grid)
+    if rec is not None:
+        rec.write_map(grid)
+        loc = rec.localizer(loc)
+    loc.initialize(guess)
+    return start, loc, grid, costmap
+
+
+def _drive_to_desk(
+    cfg: Config, world: Any, loc: Localizer, grid: OccupancyGrid, costmap: CostMap
+) -> tuple[dict[str, Any], NavigationResult]:
+    """Stages 3-5: navigate to the entry pose, find the desk by turning, turn to the grasp
+    pose's heading, the final approach. Returns the navigation columns of the run's row and
+    the final approach's result."""
+    park = np.array(DESK_PARK)
+    back = cfg.entry_back * np.array([np.cos(park[2]), np.sin(park[2])])
+    entry = np.array([*(park[:2] - back), 0.0])
+    if cfg.entry_heading is None:  # planned from the localizer's first estimate
+        n0 = max(cfg.navigate.initial_scans, 1)
+        est0 = localize_standing(world, loc, n0, cfg.navigate.scan_rate)
+        path = plan_path(costmap, est0[:2], entry[:2])
+        d = path[-1] - path[max(len(path) - 2, 0)]
+        entry[2] = float(np.arctan2(d[1], d[0]))
+    else:
+        entry[2] = cfg.entry_heading
+    r1 = navigate(
+        world, loc, grid, entry, cfg.navigate, costmap=costmap, truth=world.truth.base_pose2d
+    )
+    found, t_search = search_desk(world, loc, cfg)
+    aligned = (
+        turn_to_heading(world, loc, float(park[2]), cfg.align_tol, cfg.align_timeout)[0]
+        if cfg.align_tol > 0
+        else False
+    )
+    r2 = navigate(
+        world, loc, grid, park, cfg.navigate, costmap=costmap, truth=world.truth.base_pose2d
+    )
+    e = r2.localization_error
+    loc_err = float(np.hypot(e[0], e[1]))
+    nav_ok = bool(loc_err < cfg.success_threshold and r2.parking_error_xy < cfg.arrive_tol)
+    nav = {
         "entry_reached": r1.reached,
         "entry_err_m": r1.parking_error_xy,
         "entry_loc_err_m": float(np.hypot(*r1.localization_error[:2])),
@@ -267,12 +279,31 @@ def mm_trial(
         "parking_err_m": r2.parking_error_xy,
         "parking_err_yaw_rad": r2.parking_error_yaw,
         "navigation": nav_ok,
-        "detected": res.detected_first,
-        "grasped": held,
-        "reason": res.reason if held or res.reason != "grasped" else "dropped",
-        "sim_seconds": sim_t,
-        "wall_seconds": time.perf_counter() - w0,
     }
+    return nav, r2
+
+
+def _detect_and_grasp(
+    world: Any, grasper: Any, name: str, final_estimate: np.ndarray
+) -> tuple[Any, bool]:
+    """Stage 6: the arm to the grasp experiment's first view, then the tracking grasp of
+    ``name``. Returns the grasp's result and whether the object is held in the physics."""
+    # detection and grasp from the grasp experiment's first view, aimed with the
+    # localization estimate: the point the first view sees from the grasp pose (the
+    # base may stop 0.1-0.3 rad off its heading next to the desk, where it cannot turn on
+    # the spot; a fixed arm-base target then leaves objects near the region's edge out)
+    park = np.array(DESK_PARK)
+    _, top, _ = desk_frame(world)
+    rb = world.nominal
+    T_ba = rb.T_base_link_arm_base
+    p_look = se2_to_T(*park) @ T_ba @ np.array([*LOOK_TARGET, 0.0, 1.0])
+    look_xy = (inv(se2_to_T(*final_estimate) @ T_ba) @ p_look)[:2]
+    look = np.array([*look_xy, top - T_ba[2, 3]])
+    q_look = look_configuration(rb, look, LOOK_HEIGHT)
+    world.arm.move_joints(q_look)
+    res = run_grasp(world, grasper, name, world.step)
+    held = held_in_the_physics(world, name, top)
+    return res, held
 
 
 #: this process's grasper (a worker keeps it between runs): settings -> grasper
@@ -292,15 +323,9 @@ def mm_job(cfg_json: str, k: int, name: str, record: str | None) -> dict[str, An
 
 
 def run(cfg: Config, ctx: Context) -> Outcome:
-
-    for o in cfg.objects:
-        if o not in CLASSES:
-            raise UnknownNameError("object", o, list(CLASSES))
-    if cfg.method not in METHODS:
-        raise UnknownNameError("localization method", cfg.method, list(METHODS))
-    if cfg.weights == "oracle":
-        raise UnknownNameError("weights", "oracle", ["a weights file", "None (shipped)"])
-
+    """The runs on ``ctx``'s executor, the success rates per object beside Table 4, the
+    report with the failures."""
+    _check_names(cfg)
     n = cfg.n_trials()
     cfg_json = cfg.model_dump_json()
     rec = recording_folder()  # mmpa experiment --record
@@ -311,6 +336,29 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     ]
     rows = run_jobs(ctx, jobs, "runs")
     summary: dict[str, Any] = {"runs_per_object": n, "objects": {}}
+    table = _object_table(cfg, rows, summary)
+    for key in ("navigation", "detected", "grasped"):
+        summary[key] = float(np.mean([x[key] for x in rows]))
+    return Outcome(rows=rows, summary=summary, report=_report(cfg, n, rows, table))
+
+
+def _check_names(cfg: Config) -> None:
+    """Raises :class:`UnknownNameError` on an unknown object or localization method, or the
+    oracle detector (the run detects with the trained one)."""
+    for o in cfg.objects:
+        if o not in CLASSES:
+            raise UnknownNameError("object", o, list(CLASSES))
+    if cfg.method not in METHODS:
+        raise UnknownNameError("localization method", cfg.method, list(METHODS))
+    if cfg.weights == "oracle":
+        raise UnknownNameError("weights", "oracle", ["a weights file", "None (shipped)"])
+
+
+def _object_table(
+    cfg: Config, rows: list[dict[str, Any]], summary: dict[str, Any]
+) -> list[list[Any]]:
+    """Per object into ``summary["objects"]``: the stage success rates, the grasp success
+    given a detection, the errors at the desk; the table's lines beside Table 4."""
     table = []
     for obj in cfg.objects:
         r = [x for x in rows if x["object"] == obj]
@@ -343,8 +391,11 @@ def run(cfg: Config, ctx: Context) -> Outcome:
                 p.get("grasping", float("nan")),
             ]
         )
-    for key in ("navigation", "detected", "grasped"):
-        summary[key] = float(np.mean([x[key] for x in rows]))
+    return table
+
+
+def _report(cfg: Config, n: int, rows: list[dict[str, Any]], table: list[list[Any]]) -> str:
+    """report.md: the definitions, Table 4, the errors at the desk, the failures."""
     header = [
         "object",
         "navigation",
@@ -358,7 +409,7 @@ def run(cfg: Config, ctx: Context) -> Outcome:
     err = stats(1000 * x["loc_err_m"] for x in rows)
     park = stats(1000 * x["parking_err_m"] for x in rows)
     yaw = stats(x["parking_err_yaw_rad"] for x in rows)
-    report = (
+    return (
         f"{n} runs per object (seed {cfg.seed}, {cfg.method} localization, {cfg.lighting} "
         "light). Navigation = final position estimate within "
         f"{1000 * cfg.success_threshold:.0f} mm of the truth at the desk (paper §4.3.1); "
@@ -380,4 +431,3 @@ def run(cfg: Config, ctx: Context) -> Outcome:
             if not (r["navigation"] and r["detected"] and r["grasped"])
         )
     )
-    return Outcome(rows=rows, summary=summary, report=report)
