@@ -60,6 +60,7 @@ import numpy as np
 import yaml
 
 from mmpa.core.errors import MMPAError
+from mmpa.robot.interfaces import RobotDevices
 
 REPO = Path(__file__).resolve().parents[1]
 CASE_LIMIT_S = 20.0  # per in-process case
@@ -1984,7 +1985,7 @@ def real_data_cases(tmp: Path, rng: np.random.Generator) -> list[Case]:
     def tmma(tk: Task, tool: np.ndarray) -> Any:
         arm = _FakeArm(tk.path.q[0])
         try:
-            return replay_tmma(tk, arm=arm, gripper=None, arm_model=rob.arm, T_flange_tool=tool)
+            return replay_tmma(tk, RobotDevices(rob, arm=arm), T_flange_tool=tool)
         except MMPAError:
             if arm.calls:
                 raise SilentWrong(f"refused after the arm moved: {arm.calls}") from None

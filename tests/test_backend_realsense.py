@@ -17,7 +17,7 @@ pytest.importorskip("pyrealsense2", reason="the optional extra 'realsense'")
 from mmpa.backends.realsense import RealSenseCamera, RealSenseConfig, record_frames
 from mmpa.core.errors import InvalidInputError, MMPAError
 from mmpa.robot.description import CameraIntrinsics
-from mmpa.robot.interfaces import Camera, RGBDFrame
+from mmpa.robot.interfaces import Camera, RGBDFrame, RobotDevices
 
 
 def _frames(n: int = 4) -> list[RGBDFrame]:
@@ -91,14 +91,18 @@ def test_ipe_runs_on_the_realsense_playback(tmp_path) -> None:
         auto = ts.automation_config().model_copy(update={"execute": False})
         rec = _RecordingCamera(w.camera)
         live = automate(
-            ts.taught.task, arm=w.arm, camera=rec, gripper=w.gripper, robot=w.nominal, cfg=auto
+            ts.taught.task,
+            RobotDevices(w.nominal, arm=w.arm, camera=rec, gripper=w.gripper, clock=w),
+            cfg=auto,
         )
         assert live.ok, live.reason
         path = record_frames(rec.frames, tmp_path / "ipe.db3")
         w.reset(site="1", pose2d=pose)
         with RealSenseCamera(RealSenseConfig(playback=path, timeout_ms=1000)) as cam:
             replay = automate(
-                ts.taught.task, arm=w.arm, camera=cam, gripper=w.gripper, robot=w.nominal, cfg=auto
+                ts.taught.task,
+                RobotDevices(w.nominal, arm=w.arm, camera=cam, gripper=w.gripper, clock=w),
+                cfg=auto,
             )
         assert replay.ok, replay.reason
         truth = ts.parking_truth()

@@ -8,7 +8,8 @@ import pytest
 
 from mmpa.core.errors import InvalidInputError, JointLimitError
 from mmpa.planning import retime
-from mmpa.robot.description import ArmDescription
+from mmpa.robot.description import ArmDescription, RobotDescription
+from mmpa.robot.interfaces import RobotDevices
 from mmpa.robot.limits import (
     JointLimits,
     check_path,
@@ -326,7 +327,10 @@ def test_tmma_replay_retimes_a_path_that_jumps(world) -> None:
     cloud = PointCloud(np.random.default_rng(0).normal(size=(10, 3)), None)
     task = Task("jump", "0", np.eye(4), HOME, np.eye(4), cloud, ToolPath(t, q, T, 50.0))
     path, (rec_t, rec_q) = replay_tmma(
-        task, arm=world.arm, gripper=None, arm_model=ARM, T_flange_tool=np.eye(4), record_hz=250
+        task,
+        RobotDevices(RobotDescription(arm=ARM), arm=world.arm),
+        T_flange_tool=np.eye(4),
+        record_hz=250,
     )
     assert path.time_scale > 20
     check_path(path.t, path.q, LIM)

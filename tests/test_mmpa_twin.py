@@ -14,9 +14,9 @@ from typer.testing import CliRunner
 
 from mmpa.backends.twin.error_model import ErrorModelConfig
 from mmpa.cli.main import app
-from mmpa.harness.twin_site import MMPAExperimentConfig, TwinSite
 from mmpa.harness.ipe_eval import ipe_rows
-from mmpa.robot.interfaces import PointCloud
+from mmpa.harness.twin_site import MMPAExperimentConfig, TwinSite
+from mmpa.robot.interfaces import PointCloud, RobotDevices
 
 
 @pytest.fixture(scope="module")
@@ -143,7 +143,7 @@ def test_failed_registration_stops_ipe_and_the_arm_stays(site1):
     from mmpa.missions.teach_repeat import automate
 
     w = site1.world
-    res = automate(task, arm=w.arm, camera=w.camera, gripper=w.gripper, robot=w.nominal)
+    res = automate(task, w)
     assert not res.ok and not res.executed and res.joint_path is None
     assert "registration failed" in res.reason
     # the arm took its views (the first one, then one step back for a wider view) and did not
@@ -161,7 +161,7 @@ def test_unreachable_sampling_pose_is_refused_before_motion(site1):
     task = dataclasses.replace(site1.taught.task, q_sample=q)
     from mmpa.missions.teach_repeat import automate
 
-    res = automate(task, arm=w.arm, camera=w.camera, gripper=w.gripper, robot=w.nominal)
+    res = automate(task, w)
     assert not res.ok and "joint limits" in res.reason
     np.testing.assert_allclose(w.arm.joint_positions(), q0, atol=1e-6)
 
@@ -283,7 +283,10 @@ def test_depth_scale_fault_is_refused_and_the_arm_stays(site1, caplog):
     site1.park()
     cam = _ScaledDepthCamera(w.camera, 1.03)
     with caplog.at_level("WARNING", logger="mmpa"):
-        res = automate(site1.taught.task, arm=w.arm, camera=cam, gripper=w.gripper, robot=w.nominal)
+        res = automate(
+            site1.taught.task,
+            RobotDevices(w.nominal, arm=w.arm, camera=cam, gripper=w.gripper, clock=w),
+        )
     assert any("the arm does not move" in r.getMessage() for r in caplog.records)
     assert not res.ok and not res.executed and res.joint_path is None
     assert "depth calibration fault" in res.reason, res.reason

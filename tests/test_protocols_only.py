@@ -15,7 +15,7 @@ import pytest
 
 from mmpa.backends.twin.error_model import ErrorModelConfig
 from mmpa.backends.twin.world import SimWorld
-from mmpa.robot.interfaces import Arm, Base, Camera, Gripper, StreamingArm
+from mmpa.robot.interfaces import Arm, Base, Camera, Gripper, RobotDevices, StreamingArm
 
 
 class OnlyArm:
@@ -122,9 +122,7 @@ def test_teach_from_a_trajectory_then_ipe_over_protocols_only() -> None:
         task = teach(
             "line",
             "1",
-            arm=arm,
-            camera=cam,
-            robot=rb,
+            RobotDevices(rb, arm=arm, camera=cam),
             T_map_base_park=w.truth.T_map_base_link(),
             q_sample=q_sample,
             record=trajectory_recorder(t, retime(t, q, rb.arm).q, 50.0),
@@ -133,10 +131,7 @@ def test_teach_from_a_trajectory_then_ipe_over_protocols_only() -> None:
         w.reset(site="1", pose2d=w.truth.base_pose2d() + np.array([0.03, -0.02, 0.02]))
         res = automate(
             task,
-            arm=arm,
-            camera=cam,
-            gripper=OnlyGripper(w.gripper),
-            robot=rb,
+            RobotDevices(rb, arm=arm, camera=cam, gripper=OnlyGripper(w.gripper)),
             cfg=AutomationConfig(execute=False),
         )
         assert res.ok, res.reason
@@ -159,10 +154,10 @@ def test_grasp_over_protocols_only() -> None:
         base, grip, arm = OnlyBase(w.base), OnlyGripper(w.gripper), OnlyArm(w.arm)
         assert isinstance(base, Base) and isinstance(grip, Gripper)
         assert isinstance(arm, StreamingArm)
-        res = g.run(
-            "tennis_ball", arm, grip, OnlyCamera(w.camera), base, w.step,
-            lambda: w.time,
-        )  # fmt: skip
+        robot = RobotDevices(
+            rb, arm=arm, gripper=grip, camera=OnlyCamera(w.camera), base=base, clock=w
+        )
+        res = g.run("tennis_ball", robot)
         assert res.reason == "grasped", res.reason
         w.step(1.0)
         assert w.truth.T_map_object("tennis_ball")[2, 3] > top + 0.04  # held off the desk

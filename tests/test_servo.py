@@ -8,6 +8,7 @@ import pytest
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import apply, exp_se3
 from mmpa.robot.description import default_robot
+from mmpa.robot.interfaces import RobotDevices
 from mmpa.robot.kinematics import jacobian, manipulability
 from mmpa.servo.ibvs import (
     camera_velocity,
@@ -440,6 +441,12 @@ def test_run_refuses_an_arm_without_streaming():
     det = SimpleNamespace(cfg=SimpleNamespace(classes=["cube"], score_threshold=0.3))
     g = TrackingGrasp(det, default_robot())
     arm = PlannedOnlyArm()
+    other = SimpleNamespace()  # gripper, camera and base: never reached
+    robot = RobotDevices(default_robot(), arm=arm, gripper=other, camera=other, base=other)
     with pytest.raises(InvalidInputError, match="StreamingArm"):
-        g.run("cube", arm, None, None, None, lambda dt: None, lambda: 0.0)
+        g.run("cube", robot, lambda dt: None)
+    assert not arm.moved
+    # a robot without a gripper is refused by name, before anything moves
+    with pytest.raises(InvalidInputError, match="needs the robot's gripper"):
+        g.run("cube", RobotDevices(default_robot(), arm=arm, camera=other, base=other))
     assert not arm.moved

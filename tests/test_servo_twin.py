@@ -33,21 +33,11 @@ def test_static_grasp_holds_the_object(world):
 def test_unknown_object_and_object_out_of_view(world):
     g = TrackingGrasp(OracleDetector(world), world.nominal, GraspConfig(max_time=1.0))
     with pytest.raises(UnknownNameError, match="unicorn"):
-        g.run(
-            "unicorn",
-            world.arm,
-            world.gripper,
-            world.camera,
-            world.base,
-            world.step,
-            lambda: world.time,
-        )
+        g.run("unicorn", world)
     world.reset(pose2d=np.array([2.7, 0.85, np.pi / 2]), settle=0.1)
     world.place_object("cube", np.array([3.9, -2.9, 0.03]))  # nowhere near the desk
     q0 = world.arm.joint_positions()
-    res = g.run(
-        "cube", world.arm, world.gripper, world.camera, world.base, world.step, lambda: world.time
-    )
+    res = g.run("cube", world)
     assert res.reason == "not found" and not res.closed_on_object
     # a safe stop: the arm held still
     assert np.abs(world.arm.joint_positions() - q0).max() < 0.01
@@ -436,10 +426,7 @@ def test_a_missed_grasp_is_tried_again(world, attempts):
 
     world.camera.set_resolution(*SERVO_RESOLUTION)
     try:
-        res = g.run(
-            "tennis_ball", world.arm, world.gripper, world.camera, world.base, world.step,
-            lambda: world.time, on_event=on_event,
-        )  # fmt: skip
+        res = g.run("tennis_ball", world, on_event=on_event)
     finally:
         world.camera.set_resolution(640, 480)
     held = held_in_the_physics(world, "tennis_ball", top)

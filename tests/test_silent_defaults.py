@@ -18,7 +18,7 @@ from mmpa.backends.bag.reader import BagPlayback
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import make_T
 from mmpa.maps.occupancy import OccupancyGrid
-from mmpa.robot.interfaces import LaserScan, Odometry
+from mmpa.robot.interfaces import LaserScan, Odometry, RobotDevices
 
 # ----------------------------------------------------------------------- the lidar mount
 
@@ -316,7 +316,7 @@ def test_a_tmma_replay_that_must_be_slowed_says_so(caplog) -> None:
     task = _task(q, fk(rob.arm.dh, q, tcp))  # consistent: only too fast
     arm = _RecordingArm(q[0])
     with caplog.at_level("WARNING", logger="mmpa"):
-        path, _ = replay_tmma(task, arm=arm, gripper=None, arm_model=rob.arm, T_flange_tool=tcp)
+        path, _ = replay_tmma(task, RobotDevices(rob, arm=arm), T_flange_tool=tcp)
     assert path.time_scale > 20  # 1.5 rad in 20 ms is 24x joint 1's velocity limit
     (rec,) = [r for r in caplog.records if "slowed" in r.getMessage()]
     assert rec.levelname == "WARNING" and rec.name == "mmpa.missions.teach_repeat"
@@ -325,9 +325,7 @@ def test_a_tmma_replay_that_must_be_slowed_says_so(caplog) -> None:
     # a path within the limits replays at its own pace, with no warning
     caplog.clear()
     slow = _task(q[:10], fk(rob.arm.dh, q[:10], tcp), "calm")
-    path, _ = replay_tmma(
-        slow, arm=_RecordingArm(q[0]), gripper=None, arm_model=rob.arm, T_flange_tool=tcp
-    )
+    path, _ = replay_tmma(slow, RobotDevices(rob, arm=_RecordingArm(q[0])), T_flange_tool=tcp)
     assert path.time_scale == 1.0
     assert not [r for r in caplog.records if "slowed" in r.getMessage()]
 
@@ -350,7 +348,7 @@ def test_tmma_refuses_joints_that_are_not_the_tool_path_before_moving() -> None:
     with pytest.raises(
         InvalidInputError, match=rf"disagree by {chord * 1e3:.1f} mm .*waypoint 1\d"
     ):
-        replay_tmma(task, arm=arm, gripper=None, arm_model=rob.arm, T_flange_tool=tcp)
+        replay_tmma(task, RobotDevices(rob, arm=arm), T_flange_tool=tcp)
     assert arm.calls == []  # nothing moved
 
 

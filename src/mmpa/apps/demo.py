@@ -308,10 +308,7 @@ def _run_mmpa(world: SimWorld, taught, estimate: Array | None, out: Path, progre
     write_bundle(taught.task, out / "task", overwrite=True)
     res = automate(
         taught.task,
-        arm=world.arm,
-        camera=world.camera,
-        gripper=world.gripper,
-        robot=world.nominal,
+        world,
         T_map_base_now=None if estimate is None else se2_to_T(*estimate),
     )
     truth = inv(world.truth.T_map_arm_base()) @ taught.T_map_Bo

@@ -190,9 +190,7 @@ def teach_in_world(
     task = teach(
         demo.name,
         teach_site,
-        arm=w.arm,
-        camera=w.camera,
-        robot=w.nominal,
+        w,
         T_map_base_park=se2_to_T(*est),
         q_sample=q_sample,
         record=record,
@@ -456,10 +454,7 @@ class TwinSite:
         w = self.world
         return automate(
             self.taught.task,
-            arm=w.arm,
-            camera=w.camera,
-            gripper=w.gripper,
-            robot=w.nominal,
+            w,
             cfg=a,
             record_hz=self.taught.task.path.rate_hz if execute else None,
             T_map_base_now=self.T_map_base_estimate,
@@ -485,9 +480,7 @@ class TwinSite:
         w = self.world
         path, rec = replay_tmma(
             self.taught.task,
-            arm=w.arm,
-            gripper=w.gripper,
-            arm_model=w.nominal.arm,
+            w,
             T_flange_tool=w.nominal.gripper.T_flange_tcp,
             record_hz=self.taught.task.path.rate_hz,
         )

@@ -26,8 +26,8 @@ from mmpa.core.geometry import Array, T_to_se2, inv
 from mmpa.ipe import transform_path
 from mmpa.ipe.loop import IPE, IPEConfig, IPEResult, capture_cloud
 from mmpa.planning import JointPath, PathPlanConfig, plan_joint_path, retime
-from mmpa.robot.description import ArmDescription, RobotDescription
-from mmpa.robot.interfaces import Arm, Camera, Gripper
+from mmpa.robot.description import ArmDescription
+from mmpa.robot.interfaces import Arm, Gripper, MobileManipulator, require
 from mmpa.robot.kinematics import fk
 from mmpa.tasks import Task, ToolPath
 
@@ -92,10 +92,8 @@ def trajectory_recorder(
 def teach(
     name: str,
     site: str,
+    robot: MobileManipulator,
     *,
-    arm: Arm,
-    camera: Camera,
-    robot: RobotDescription,
     T_map_base_park: Array,
     q_sample: Array,
     record: Recorder,
@@ -105,7 +103,11 @@ def teach(
     meta: dict | None = None,
 ) -> Task:
     """Record a task (paper 000 §3.1): sample the scene at ``q_sample``, then record the
-    demonstration. ``T_map_base_park`` is the localization estimate of the park pose."""
+    demonstration with ``robot``'s arm and camera (its nominal description gives the
+    kinematics). ``T_map_base_park`` is the localization estimate of the park pose."""
+    require(robot, "arm", "camera", mission="teaching")
+    arm, camera, rd = robot.arm, robot.camera, robot.description
+    assert arm is not None and camera is not None
     cfg = cfg or TeachConfig()
     arm.move_joints(np.asarray(q_sample, dtype=float))
     q_meas = arm.joint_positions()
@@ -115,9 +117,9 @@ def teach(
             f"the camera sees only {len(cloud)} points at the sampling pose: point it at the "
             f"work area (within {cfg.min_depth}-{cfg.max_depth} m)"
         )
-    T_B_C = fk(robot.arm.dh, q_meas) @ robot.camera.T_flange_camera
+    T_B_C = fk(rd.arm.dh, q_meas) @ rd.camera.T_flange_camera
     t, q, g, rate = record()
-    T_B_tool = fk(robot.arm.dh, q, robot.gripper.T_flange_tcp)
+    T_B_tool = fk(rd.arm.dh, q, rd.gripper.T_flange_tcp)
     path = ToolPath(t=t, q=q, T_arm_base_tool=T_B_tool, rate_hz=rate, gripper=g)
     return Task(
         name=name,
@@ -189,11 +191,8 @@ def repark_motion(dT_B: Array, T_base_link_arm_base: Array) -> Array:
 
 def automate(
     task: Task,
+    robot: MobileManipulator,
     *,
-    arm: Arm,
-    camera: Camera,
-    gripper: Gripper | None,
-    robot: RobotDescription,
     cfg: AutomationConfig | None = None,
     record_hz: float | None = None,
     progress: Progress | None = None,
@@ -209,16 +208,19 @@ def automate(
     ``repark``: when IPE succeeded but the adapted path is out of reach, the arm goes home and
     the base is asked to move by :func:`repark_motion` of the estimate; then IPE runs again
     (at most ``cfg.max_reparks`` times). Nothing runs on the path until a plan succeeded."""
+    require(robot, "arm", "camera", mission="the automation stage (IPE and the adapted path)")
+    arm, camera, gripper, rd = robot.arm, robot.camera, robot.gripper, robot.description
+    assert arm is not None and camera is not None
     cfg = cfg or AutomationConfig()
     t0 = time.perf_counter()
-    T_ba = robot.T_base_link_arm_base
+    T_ba = rd.T_base_link_arm_base
     out = AutomationResult(False, "", None, seconds={"ipe": 0.0})
     while True:
         prior = None
         if T_map_base_now is not None and cfg.localization_prior:
             prior = inv(np.asarray(T_map_base_now, float) @ T_ba) @ (task.T_map_base_park @ T_ba)
         t_ipe = time.perf_counter()
-        ipe = IPE(robot, cfg.ipe).run(
+        ipe = IPE(rd, cfg.ipe).run(
             arm, camera, task.q_sample, task.T_arm_base_camera, task.cloud, progress, prior
         )
         out.seconds["ipe"] += time.perf_counter() - t_ipe
@@ -238,9 +240,9 @@ def automate(
         out.T_arm_base_tool = T_new
         try:
             q_path = plan_joint_path(
-                robot.arm, T_new, arm.joint_positions(), robot.gripper.T_flange_tcp, cfg.plan
+                rd.arm, T_new, arm.joint_positions(), rd.gripper.T_flange_tcp, cfg.plan
             )
-            out.joint_path = retime(task.path.t, q_path, robot.arm, cfg.plan)
+            out.joint_path = retime(task.path.t, q_path, rd.arm, cfg.plan)
             _warn_slowed(task, out.joint_path, "the adapted path")
             break
         except (UnreachableError, JointLimitError) as e:
@@ -259,7 +261,7 @@ def automate(
                 0.0,
             )
         _log.info("task %s: re-parking by %s (x m, y m, yaw rad)", task.name, np.round(motion, 3))
-        arm.move_joints(np.asarray(robot.arm.home, dtype=float))
+        arm.move_joints(np.asarray(rd.arm.home, dtype=float))
         out.reparks.append(motion)
         out.ipe_before_repark.append(ipe)
         T_map_base_now = repark(motion)
@@ -313,10 +315,8 @@ def execute_joint_path(
 
 def replay_tmma(
     task: Task,
+    robot: MobileManipulator,
     *,
-    arm: Arm,
-    gripper: Gripper | None,
-    arm_model: ArmDescription,
     T_flange_tool: Array,
     record_hz: float | None = None,
     max_mismatch: tuple[float, float] = MAX_TOOL_MISMATCH,
@@ -327,11 +327,14 @@ def replay_tmma(
     First the joints must be the taught tool path: :func:`check_tool_path` with
     ``T_flange_tool`` (the tool the path was taught with) refuses a task whose joint path
     disagrees with its tool path by more than ``max_mismatch`` before anything moves. The
-    recorded path is then retimed to the full joint limits of ``arm_model`` (a taught path
+    recorded path is then retimed to the full joint limits of ``robot``'s arm model (a taught path
     recorded from the arm itself needs no stretch: ``time_scale`` 1; an edited or corrupted
     one is slowed down, with a warning, never played past the limits). Returns the executed
     ``JointPath`` (its ``time_scale``) and the recording (``None`` without ``record_hz``).
     """
+    require(robot, "arm", mission="the TMMA replay")
+    arm, gripper, arm_model = robot.arm, robot.gripper, robot.description.arm
+    assert arm is not None
     mismatch = check_tool_path(task, arm_model, T_flange_tool, max_mismatch)
     full = PathPlanConfig(velocity_scale=1.0, acceleration_scale=1.0)
     path = retime(task.path.t, task.path.q, arm_model, full)

@@ -15,23 +15,29 @@ import numpy as np
 
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array, apply
-from mmpa.robot.description import CameraIntrinsics
+from mmpa.robot.description import CameraIntrinsics, RobotDescription
 from mmpa.robot.limits import JointLimits
 
 __all__ = [
     "Arm",
     "Base",
     "Camera",
+    "Clock",
     "Gripper",
     "LaserScan",
     "Lidar",
+    "MobileManipulator",
+    "NoClockError",
     "Odometry",
+    "OdometrySource",
     "PhotoSensor",
     "PointCloud",
     "RGBDFrame",
+    "RobotDevices",
     "StreamingArm",
     "deproject",
     "mean_frame",
+    "require",
 ]
 
 
@@ -338,3 +344,95 @@ class PhotoSensor(Protocol):
     """A photoelectric (retroreflective) sensor: True when its beam returns."""
 
     def triggered(self) -> bool: ...
+
+
+@runtime_checkable
+class OdometrySource(Protocol):
+    """Wheel odometry of a mobile base."""
+
+    def odometry(self) -> Odometry: ...
+
+
+@runtime_checkable
+class Clock(Protocol):
+    """The robot's time (s) and a wait of ``duration`` s: the twin steps its physics, a real
+    robot sleeps while its drivers run."""
+
+    @property
+    def time(self) -> float: ...
+
+    def step(self, duration: float) -> None: ...
+
+
+@runtime_checkable
+class MobileManipulator(Protocol):
+    """One robot as every mission takes it: the NOMINAL description the software knows
+    (kinematics, mounts, limits: the robot file), its devices (None where the robot has
+    none: a fixed-base arm has no base, odometry or lidar) and its clock. The twin
+    (``SimWorld``) is one; :class:`RobotDevices` bundles the devices of any other backend.
+    A mission checks what it needs with :func:`require`."""
+
+    @property
+    def description(self) -> RobotDescription: ...
+
+    @property
+    def arm(self) -> Arm | None: ...
+
+    @property
+    def camera(self) -> Camera | None: ...
+
+    @property
+    def gripper(self) -> Gripper | None: ...
+
+    @property
+    def base(self) -> Base | None: ...
+
+    @property
+    def odometry(self) -> OdometrySource | None: ...
+
+    @property
+    def lidar(self) -> Lidar | None: ...
+
+    @property
+    def time(self) -> float: ...
+
+    def step(self, duration: float) -> None: ...
+
+
+class NoClockError(InvalidInputError, AttributeError):
+    """The robot has no clock (an ``AttributeError`` too: such a robot has no ``time``)."""
+
+
+@dataclass
+class RobotDevices:
+    """A :class:`MobileManipulator` made of given devices (hardware backends, recordings,
+    tests that swap one device): ``clock`` None means the robot has no clock of its own
+    (a mission that waits refuses it)."""
+
+    description: RobotDescription
+    arm: Arm | None = None
+    camera: Camera | None = None
+    gripper: Gripper | None = None
+    base: Base | None = None
+    odometry: OdometrySource | None = None
+    lidar: Lidar | None = None
+    clock: Clock | None = None
+
+    @property
+    def time(self) -> float:
+        if self.clock is None:
+            raise NoClockError("this robot has no clock (RobotDevices(clock=...))")
+        return self.clock.time
+
+    def step(self, duration: float) -> None:
+        if self.clock is None:
+            raise NoClockError("this robot has no clock (RobotDevices(clock=...))")
+        self.clock.step(duration)
+
+
+def require(robot: MobileManipulator, *devices: str, mission: str = "this mission") -> None:
+    """Refuse ``robot`` with :class:`InvalidInputError` naming the ``devices`` (``"arm"``,
+    ``"camera"``, ``"gripper"``, ``"base"``, ``"odometry"``, ``"lidar"``) it lacks."""
+    missing = [d for d in devices if getattr(robot, d, None) is None]
+    if missing:
+        raise InvalidInputError(f"{mission} needs the robot's {', '.join(missing)}; it has none")

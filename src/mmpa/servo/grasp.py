@@ -33,7 +33,7 @@ import numpy as np
 from mmpa.core.errors import InvalidInputError, MMPAError, UnknownNameError, UnreachableError
 from mmpa.core.geometry import Array, apply, inv
 from mmpa.robot.description import RobotDescription
-from mmpa.robot.interfaces import Base, Camera, Gripper, StreamingArm
+from mmpa.robot.interfaces import Base, Camera, Gripper, MobileManipulator, StreamingArm, require
 from mmpa.robot.kinematics import fk, ik_nearest, jacobian
 from mmpa.servo.config import GraspConfig
 from mmpa.servo.descent import Descent
@@ -211,12 +211,8 @@ class TrackingGrasp:
     def run(
         self,
         name: str,
-        arm: StreamingArm,
-        gripper: Gripper,
-        camera: Camera,
-        base: Base,
-        wait: Wait,
-        clock: Callable[[], float],
+        robot: MobileManipulator,
+        wait: Wait | None = None,
         on_event: Callable[[str], None] | None = None,
     ) -> GraspResult:
         """Track and grasp the object called ``name``; the arm starts at a view of the desk.
@@ -226,11 +222,21 @@ class TrackingGrasp:
         followed, the grasp height from the top and the desk), close, lift. ``on_event`` gets
         "descend" and "close" when those phases start, and "retry" when the gripper opens
         again after a missed grasp (``close.max_attempts``). Raises
-        :class:`~mmpa.core.errors.InvalidInputError` for an arm that is no
-        :class:`~mmpa.robot.interfaces.StreamingArm`."""
+        :class:`~mmpa.core.errors.InvalidInputError` for a robot without an arm, gripper,
+        wrist camera or base, or whose arm is no :class:`~mmpa.robot.interfaces.StreamingArm`.
+        ``wait(dt)`` advances the robot's time by ``dt`` s (default ``robot.step``; a caller
+        that moves things meanwhile passes its own); the base is held still."""
         classes = self.det.cfg.classes
         if name not in classes:
             raise UnknownNameError("object", name, list(classes))
+        require(robot, "arm", "gripper", "camera", "base", mission="the tracking grasp")
+        arm, gripper, camera, base = robot.arm, robot.gripper, robot.camera, robot.base
+        assert gripper is not None and camera is not None and base is not None
+        wait = robot.step if wait is None else wait
+
+        def clock() -> float:
+            return robot.time
+
         if not isinstance(arm, StreamingArm):
             raise InvalidInputError(
                 "the tracking grasp needs a StreamingArm (streaming command(q), limits, "

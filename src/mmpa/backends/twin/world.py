@@ -193,6 +193,11 @@ class SimWorld:
         """Simulation time (s)."""
         return float(self.data.time)
 
+    @property
+    def description(self) -> RobotDescription:
+        """The NOMINAL robot (what the software knows; :class:`MobileManipulator`)."""
+        return self.nominal
+
     # --- scene state ----------------------------------------------------------------------
     def set_speed_bump(self, enabled: bool) -> None:
         """Put the speed bump of Site 2' in place (or park it below the floor)."""

@@ -158,16 +158,7 @@ def run_grasp(
     before = world.camera.resolution
     world.camera.set_resolution(*resolution)
     try:
-        return grasper.run(
-            name,
-            world.arm,
-            world.gripper,
-            world.camera,
-            world.base,
-            wait,
-            lambda: world.time,
-            on_event=on_event,
-        )
+        return grasper.run(name, world, wait, on_event=on_event)
     finally:
         world.camera.set_resolution(*before)
 
