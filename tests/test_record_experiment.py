@@ -54,8 +54,8 @@ def test_every_trial_records_its_own_bag_and_the_rows_are_unchanged(ipe_runs) ->
 
 
 def test_the_trial_bag_holds_the_trial(ipe_runs) -> None:
-    from mmpa.harness.twin_site import MMPAExperimentConfig
     from mmpa.harness.ipe_eval import pose_errors
+    from mmpa.harness.twin_site import MMPAExperimentConfig
     from mmpa.robot.description import default_robot
     from mmpa.tasks import read_bundle
 
