@@ -33,6 +33,7 @@ from mmpa.apps.calibrate import write_robot_file
 from mmpa.core.geometry import exp_se3
 from mmpa.missions.hand_eye import HandEyeProcedureConfig, calibrate_hand_eye_on_robot
 from mmpa.robot.description import RobotDescription, default_robot
+from mmpa.robot.interfaces import RobotDevices, WallClock
 from mmpa.robot.robot_file import load_robot
 
 
@@ -89,8 +90,9 @@ def main(argv: list[str] | None = None) -> dict:
         wait = None
     try:
         kw = {"wait": wait} if wait is not None else {}
+        devices = RobotDevices(robot, arm=arm, camera=camera, clock=WallClock())
         res = calibrate_hand_eye_on_robot(
-            arm, camera, robot, guess, np.asarray(robot.arm.view_bench), cfg, log=print, **kw
+            devices, guess, np.asarray(robot.arm.view_bench), cfg, log=print, **kw
         )
         out = {"T_flange_camera": res.T_flange_camera, "method": res.method, "result": res}
         if world is not None:  # the twin knows the truth: the hand-eye on the model's flange

@@ -245,9 +245,9 @@ def test_hand_eye_calibration_over_protocols_only() -> None:
             waits.append(s)
             world.step(s)
 
-        arm, camera = OnlyArm(world.arm), OnlyCamera(world.camera)
+        devices = RobotDevices(robot, arm=OnlyArm(world.arm), camera=OnlyCamera(world.camera))
         res = calibrate_hand_eye_on_robot(
-            arm, camera, robot, guess, np.asarray(robot.arm.view_bench), cfg, wait=wait
+            devices, guess, np.asarray(robot.arm.view_bench), cfg, wait=wait
         )
         X_true = world.true_robot.camera.T_flange_camera
         E6 = last_link_error(robot.arm.dh, world.true_robot.arm.dh)
@@ -297,7 +297,11 @@ def test_hand_eye_procedure_refuses_bad_input_before_moving() -> None:
         (np.eye(4), np.full(6, np.nan), "6 finite"),
     ]:
         with pytest.raises(InvalidInputError, match=match):
-            calibrate_hand_eye_on_robot(arm, None, robot, guess, qr)  # type: ignore[arg-type]
+            calibrate_hand_eye_on_robot(RobotDevices(robot, arm=arm), guess, qr)  # type: ignore[arg-type]
+    assert arm.moves == []
+    # a robot without a camera is refused by name, before the arm moves
+    with pytest.raises(InvalidInputError, match="needs the robot's camera"):
+        calibrate_hand_eye_on_robot(RobotDevices(robot, arm=arm), np.eye(4), q)  # type: ignore[arg-type]
     assert arm.moves == []
 
 

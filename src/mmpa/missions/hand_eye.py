@@ -58,7 +58,7 @@ from mmpa.calibration.kinematic import (
 from mmpa.core.errors import InvalidInputError, MMPAError
 from mmpa.core.geometry import Array
 from mmpa.robot.description import DHParameters, RobotDescription
-from mmpa.robot.interfaces import Arm, Camera
+from mmpa.robot.interfaces import Arm, Camera, MobileManipulator, require
 from mmpa.robot.kinematics import fk
 
 __all__ = [
@@ -281,23 +281,22 @@ def _fit(
 
 
 def calibrate_hand_eye_on_robot(
-    arm: Arm,
-    camera: Camera,
-    robot: RobotDescription,
+    robot: MobileManipulator,
     T_armbase_board_guess: Array,
     q_ref: Array,
     cfg: HandEyeProcedureConfig | None = None,
     *,
-    wait: Callable[[float], None] = time.sleep,
+    wait: Callable[[float], None] | None = None,
     log: Callable[[str], None] | None = None,
     on_view: Callable[[int, CharucoPose], dict[str, Any]] | None = None,
 ) -> HandEyeProcedureResult:
-    """Calibrate the wrist camera of ``arm`` / ``camera`` (module docstring) from the nominal
-    ``robot`` description, a rough board pose ``T_armbase_board_guess`` (4, 4) in the arm
+    """Calibrate the wrist camera of ``robot`` (its arm and camera; module docstring) from its
+    nominal description, a rough board pose ``T_armbase_board_guess`` (4, 4) in the arm
     base frame and the configuration ``q_ref`` (6,) rad the views stay near (no wrist flip).
-    ``wait(s)`` lets the arm settle after each move (a wall-clock sleep on hardware; the
-    twin steps its physics); ``on_view(i, pose)`` is called after each detected view and
-    its dict joins the view's row (an evaluation's ground truth; nothing here uses it).
+    ``wait(s)`` lets the arm settle after each move (default ``robot.step``: the twin steps
+    its physics, a :class:`~mmpa.robot.interfaces.WallClock` sleeps); ``on_view(i, pose)``
+    is called after each detected view and its dict joins the view's row (an evaluation's
+    ground truth; nothing here uses it).
     Raises :class:`~mmpa.core.errors.InvalidInputError` on a malformed guess or ``q_ref``,
     :class:`~mmpa.core.errors.UnreachableError` when the views cannot be planned,
     :class:`~mmpa.calibration.charuco.BoardNotFoundError` when the first view shows no
@@ -305,16 +304,20 @@ def calibrate_hand_eye_on_robot(
     cfg = cfg or HandEyeProcedureConfig()
     log = log or (lambda m: None)
     guess, q_ref = _check_inputs(T_armbase_board_guess, q_ref)
-    dh = robot.arm.dh
+    require(robot, "arm", "camera", mission="the hand-eye calibration")
+    arm, camera, rd = robot.arm, robot.camera, robot.description
+    assert arm is not None and camera is not None
+    wait = robot.step if wait is None else wait
+    dh = rd.arm.dh
     K, size = _camera_geometry(camera)
     # 1. first view, planned from the guess
-    q0, pose0, Y0 = _first_view(arm, camera, robot, guess, q_ref, cfg, wait, log)
+    q0, pose0, Y0 = _first_view(arm, camera, rd, guess, q_ref, cfg, wait, log)
     # 2. stations around the measured board
     stations = plan_stations(
         dh,
-        robot.arm.q_limits,
+        rd.arm.q_limits,
         Y0,
-        robot.camera.T_flange_camera,
+        rd.camera.T_flange_camera,
         cfg.board.corners(),
         K,
         size,

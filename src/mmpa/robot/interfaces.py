@@ -7,6 +7,7 @@ without touching them. Data types carry ROS-like fields and are plain numpy arra
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from numbers import Real
 from typing import Protocol, runtime_checkable
@@ -35,6 +36,7 @@ __all__ = [
     "RGBDFrame",
     "RobotDevices",
     "StreamingArm",
+    "WallClock",
     "deproject",
     "mean_frame",
     "require",
@@ -428,6 +430,18 @@ class RobotDevices:
         if self.clock is None:
             raise NoClockError("this robot has no clock (RobotDevices(clock=...))")
         self.clock.step(duration)
+
+
+class WallClock:
+    """A real robot's :class:`Clock`: monotonic wall time (s); ``step`` sleeps while the
+    robot's drivers run."""
+
+    @property
+    def time(self) -> float:
+        return time.monotonic()
+
+    def step(self, duration: float) -> None:
+        time.sleep(max(0.0, float(duration)))
 
 
 def require(robot: MobileManipulator, *devices: str, mission: str = "this mission") -> None:

@@ -89,9 +89,7 @@ def _calibrate(
     nominal = world.nominal
     Y_plan = placement.T_armbase_board(cfg.board, nominal)
     return calibrate_hand_eye_on_robot(
-        world.arm,
-        world.camera,
-        nominal,
+        world,
         Y_plan,
         np.asarray(nominal.arm.view_bench, float),
         cfg,  # a HandEyeProcedureConfig; the twin's fields are not the procedure's business
