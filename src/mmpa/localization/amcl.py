@@ -238,13 +238,12 @@ class AMCL:
         return self._table
 
     def raycast(self, particles: Array, angles: Array, max_range: float) -> Array:
-        """Expected ranges (N, B) by sphere tracing (:func:`mmpa.localization.beam_model.
-        raycast`); ``max_range`` where no occupied cell is hit."""
+        """Expected ranges (N, B) by sphere tracing (:func:`~.beam_model.raycast`);
+        ``max_range`` where no occupied cell is hit."""
         return raycast(self.grid, self._skip_table(), particles, self.laser_pose, angles, max_range)
 
     def _march(self, particles: Array, angles: Array, max_range: float) -> Array:
-        """:meth:`raycast` on one block of particles (:func:`~mmpa.localization.beam_model.
-        march`)."""
+        """:meth:`raycast` on one block of particles (:func:`~.beam_model.march`)."""
         return march(self.grid, self._skip_table(), particles, self.laser_pose, angles, max_range)
 
     def _skip_table(self) -> Array:
