@@ -23,6 +23,7 @@ from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from mmpa.apps.view import FoxgloveView, Tee
@@ -110,12 +111,6 @@ def _capture(world: SimWorld, out: Path, cfg: DemoConfig, q_view: Array) -> dict
 
 
 def _write_ply(path: Path, points: Array, colors: Array) -> None:
-    try:
-        import open3d as o3d
-    except ImportError as e:  # pragma: no cover - depends on the install flavor
-        raise MMPAError(
-            "Open3D is missing: install mmpa with the 'cpu' or 'cuda' extra (make setup does)"
-        ) from e
     pc = o3d.geometry.PointCloud()
     pc.points = o3d.utility.Vector3dVector(points)
     pc.colors = o3d.utility.Vector3dVector(np.clip(colors, 0, 1))

@@ -18,6 +18,7 @@ the reason when not ok).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -26,6 +27,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.backends.bag import messages as rm
@@ -280,12 +283,9 @@ def _write_estimate_bag(path: Path, res: LocalizeResult) -> None:
 
 
 def _plot(path: Path, res: LocalizeResult, grid: OccupancyGrid) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 6))
+    fig = Figure(figsize=(7, 6))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
     x0, y0 = grid.origin[0], grid.origin[1]
     ext = (x0, x0 + grid.width * grid.resolution, y0, y0 + grid.height * grid.resolution)
     ax.imshow(grid.occupied, origin="lower", extent=ext, cmap="Greys", alpha=0.6)
@@ -301,7 +301,6 @@ def _plot(path: Path, res: LocalizeResult, grid: OccupancyGrid) -> None:
     ax.set_title(f"offline localization ({res.method}, {len(res.t)} scans)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def run_localize(
@@ -323,8 +322,6 @@ def run_localize(
     else:
         grid = grid_from_bag(bag, cfg.topics)
     if reflectors is not None:
-        import dataclasses
-
         rm = load_reflector_map(reflectors)
         if np.ptp(rm.radius) > 1e-9:
             raise ConfigError(

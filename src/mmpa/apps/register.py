@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
 from mmpa.backends.bag.reader import BagCamera, BagTopics, bag_topics
 from mmpa.core.errors import InvalidInputError, MMPAError
@@ -103,7 +104,6 @@ def load_intrinsics(path: str | Path, width: int, height: int) -> CameraIntrinsi
 
 
 def _open_png(path: Path, what: str) -> Any:
-    from PIL import Image, UnidentifiedImageError
 
     if not path.is_file():
         raise InvalidInputError(f"{what} image {path} does not exist")

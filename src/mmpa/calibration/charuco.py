@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from mmpa.core.errors import InvalidInputError, MMPAError
@@ -63,7 +64,6 @@ class CharucoPose:
 
 
 def _gray(image: np.ndarray) -> np.ndarray:
-    import cv2
 
     img = np.asarray(image)
     if img.ndim == 3 and img.shape[2] == 3:
@@ -81,7 +81,6 @@ def detect_charuco(image: np.ndarray, board: object) -> CharucoDetection:
     """ChArUco corners of ``board`` (a ``cv2.aruco.CharucoBoard``) in ``image`` (H, W, 3)
     RGB or (H, W) grey, uint8 (floats in [0, 1] or [0, 255] are converted). No corner:
     an empty detection (N = 0), not an error."""
-    import cv2
 
     gray = _gray(image)
     params = cv2.aruco.CharucoParameters()
@@ -114,7 +113,6 @@ def estimate_board_pose(
     default none). Reprojection residual ``r_k = pi(K, T p_k) - u_k`` (px):
     ``rms_px = sqrt(mean |r_k|^2)``. Raises :class:`BoardNotFoundError` below
     ``min_corners`` corners (a pose from fewer, nearly collinear corners is unreliable)."""
-    import cv2
 
     K = np.asarray(K, float)
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from mmpa.core.errors import InvalidInputError, MMPAError, UnreachableError
@@ -62,7 +63,6 @@ METHODS = ("tsai", "park", "horaud", "andreff", "daniilidis")
 
 
 def _cv_method(name: str) -> int:
-    import cv2
 
     table = {
         "tsai": cv2.CALIB_HAND_EYE_TSAI,
@@ -103,7 +103,6 @@ def solve_hand_eye(T_base_flange: Array, T_camera_board: Array, method: str = "p
     and ``T_camera_board`` (N, 4, 4), by ``cv2.calibrateHandEye`` with ``method`` (one of
     :data:`METHODS`). OpenCV's names: gripper2base = ``G_i``, target2cam = ``C_i``,
     cam2gripper = ``X``."""
-    import cv2
 
     G = _as_stack(T_base_flange, "T_base_flange")
     C = _as_stack(T_camera_board, "T_camera_board")
@@ -400,7 +399,6 @@ def pair_motion_stats(T_base_flange: Array) -> dict[str, float]:
     ``axis_conditioning = s_min / s_max`` of the singular values of the stacked
     ``angle * axis`` vectors (M, 3) (0: all axes parallel, 1: isotropic)."""
     G = _as_stack(T_base_flange, "T_base_flange")
-    import cv2
 
     angles, vecs = [], []
     for i in range(len(G)):

@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import logging
 
+from rich.console import Console
+from rich.logging import RichHandler
+
 from mmpa.core.errors import ConfigError
 
 __all__ = ["LEVELS", "setup_logging"]
@@ -19,8 +22,6 @@ def setup_logging(level: str = "warning") -> logging.Logger:
     name = level.lower()
     if name not in LEVELS:
         raise ConfigError(f"unknown log level {level!r}; valid: {', '.join(LEVELS)}")
-    from rich.console import Console
-    from rich.logging import RichHandler
 
     log = logging.getLogger("mmpa")
     log.setLevel(name.upper())

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from functools import cached_property
 
+import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -75,7 +76,6 @@ class CharucoBoardSpec(BaseModel):
 
     def cv_board(self) -> object:
         """The :class:`cv2.aruco.CharucoBoard` (OpenCV >= 4.7 layout, not the legacy one)."""
-        import cv2
 
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
         return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square, self.marker, d)

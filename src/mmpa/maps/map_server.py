@@ -23,6 +23,7 @@ from typing import Literal
 
 import numpy as np
 import yaml
+from PIL import Image
 from scipy.spatial import cKDTree
 
 from mmpa.core.errors import ConfigError, InvalidInputError
@@ -166,7 +167,6 @@ def read_map_image(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     if magic in (b"P2", b"P5"):
         img, maxval = read_pgm_maxval(path)
         return 3.0 * _to_quanta(img, maxval), None
-    from PIL import Image  # Pillow: a dependency of matplotlib, imported only when needed
 
     try:
         with Image.open(path) as im:
@@ -418,8 +418,6 @@ def save_map(grid: OccupancyGrid, yaml_path: str | Path, mode: MapMode = "trinar
     yaml_path.parent.mkdir(parents=True, exist_ok=True)
     img = image_from_occupancy(grid.data, mode, grid.occupied_thresh, grid.free_thresh)
     if mode == "scale":
-        from PIL import Image
-
         img_path = yaml_path.with_suffix(".png")
         Image.fromarray(img, "RGBA").save(img_path)
     else:

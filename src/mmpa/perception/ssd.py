@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -402,6 +403,5 @@ def postprocess(
 
 def default_weights_path() -> Path:
     """The shipped detector weights (``mmpa/perception/weights/ssd.pt``)."""
-    from importlib import resources
 
     return Path(str(resources.files("mmpa.perception") / "weights" / "ssd.pt"))

@@ -19,6 +19,7 @@ from functools import cache
 from typing import Any
 
 import numpy as np
+import open3d as o3d
 
 __all__ = ["open3d_threads", "single_threaded_blas"]
 
@@ -63,7 +64,6 @@ def open3d_threads(n: int | None) -> Iterator[None]:
     if n is None:
         yield
         return
-    import open3d as o3d
 
     previous = o3d.utility.get_max_threads()
     if previous == n:  # e.g. prepare inside register: nothing to set or restore

@@ -21,6 +21,7 @@ from functools import cache
 from typing import Any
 
 import numpy as np
+from rosbags.typesys import Stores, get_typestore
 
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array, make_T, quat_xyzw_to_R
@@ -75,7 +76,6 @@ FRAMES = {
 @cache
 def typestore() -> Any:
     """The ROS 2 Humble type store of ``rosbags`` (message classes, CDR serialization)."""
-    from rosbags.typesys import Stores, get_typestore
 
     return get_typestore(Stores.ROS2_HUMBLE)
 

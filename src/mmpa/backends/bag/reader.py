@@ -22,6 +22,7 @@ with the body twist differenced from consecutive poses (:func:`odometry_from_tf`
 from __future__ import annotations
 
 import bisect
+from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,6 +30,8 @@ from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
 
 from mmpa.backends.bag import messages as rm
 from mmpa.core.errors import ConfigError, InvalidInputError, MMPAError
@@ -80,8 +83,6 @@ class BagTopics(BaseModel):
 
 
 def _open(path: Path) -> Any:
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
 
     if not path.exists():
         raise InvalidInputError(f"bag {path} does not exist")
@@ -240,7 +241,6 @@ class BagPlayback:
         chain of recorded transforms (either way round) that links the two frames, as
         ``tf2`` resolves it (a leading ``/`` of ROS 1 names is ignored); None if the two
         frames are not linked."""
-        from collections import deque
 
         edges: dict[str, list[tuple[str, Array]]] = {}
         for (p, c), Tm in self.static_transforms.items():

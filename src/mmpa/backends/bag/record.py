@@ -50,6 +50,7 @@ quantities only), so the run is unchanged; a reader of the encoders after a ``st
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -361,7 +362,6 @@ class Recorder:
 
 def _restamp(value: Any, t: float) -> Any:
     """``value`` (a frozen dataclass with ``stamp``) with its stamp set to bag time ``t``."""
-    import dataclasses
 
     return value if value.stamp == t else dataclasses.replace(value, stamp=t)
 

@@ -20,6 +20,16 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
+from rosbags.rosbag2 import StoragePlugin, Writer
+
 from mmpa.backends.bag.messages import stamp_ns, typestore
 from mmpa.core.errors import InvalidInputError, MMPAError
 
@@ -30,14 +40,6 @@ LATCHED_TOPICS = frozenset({"/tf_static", "/map", "/reflectors"})
 
 
 def _latched_qos() -> Any:
-    from rosbags.interfaces import (
-        Qos,
-        QosDurability,
-        QosHistory,
-        QosLiveliness,
-        QosReliability,
-        QosTime,
-    )
 
     zero = QosTime(0, 0)
     return Qos(
@@ -69,7 +71,6 @@ class BagWriter:
     call :meth:`close`; ``counts`` holds the messages written per topic."""
 
     def __init__(self, path: str | Path, storage: str = "mcap", overwrite: bool = False) -> None:
-        from rosbags.rosbag2 import StoragePlugin, Writer
 
         self.path = Path(path)
         self._single = self.path.suffix == ".mcap"

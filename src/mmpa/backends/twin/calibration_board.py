@@ -25,6 +25,7 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from typing import TYPE_CHECKING
 
+import mujoco
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -123,7 +124,6 @@ def add_board(
     ``calibration_board`` holding a thin box as the *last* child of the worldbody (so the
     ids of every other body and geom are unchanged). The box is visual only (contype and
     conaffinity 0): the arm may not touch it anyway. Returns ``(xml, assets)``."""
-    import mujoco
 
     T = np.asarray(T_map_geom, float)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):

@@ -10,6 +10,7 @@ Units: m, rad; colors are uint8 RGB in, uint8 RGB out.
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from mmpa.backends.twin.error_model import CameraNoise, OdometryNoise
 from mmpa.core.errors import InvalidInputError
@@ -129,7 +130,6 @@ def correlated_field(
     smoothed by a Gaussian kernel of SD ``corr_px`` pixels (so the field's autocorrelation is
     Gaussian with SD ``sqrt(2) corr_px``), normalized by its sample SD. ``corr_px = 0`` gives
     white noise."""
-    from scipy.ndimage import gaussian_filter
 
     f = rng.standard_normal(shape).astype(np.float32)
     if corr_px > 0:

@@ -13,6 +13,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.image import imsave
+from matplotlib.patches import Circle, Polygon, Rectangle
 
 __all__ = ["backboard", "floor", "letters", "logo", "png_bytes", "wall", "wood"]
 
@@ -63,7 +64,6 @@ def logo(rng: np.random.Generator, w: int = 256, h: int = 128) -> np.ndarray:
     """A company-logo-like patch: colored shapes and a short word on a plain background."""
     bg = np.array([1.0, 1.0, 1.0]) * rng.uniform(0.85, 1.0)
     fig, ax = _canvas(w, h, bg)
-    from matplotlib.patches import Circle, Polygon, Rectangle
 
     for _ in range(int(rng.integers(2, 5))):
         c = _PALETTE[rng.integers(len(_PALETTE))]

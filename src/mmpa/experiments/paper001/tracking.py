@@ -15,6 +15,8 @@ from collections import Counter
 from typing import Any
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 from pydantic import BaseModel, Field
 
 from mmpa.backends.twin.error_model import ErrorModelConfig
@@ -152,12 +154,9 @@ def run(cfg: Config, ctx: Context) -> Outcome:
 
 
 def _plot(rows: list[dict[str, Any]], cfg: Config, ctx: Context) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 5))
+    fig = Figure(figsize=(6, 5))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
 
     def rate(key: str, speed: float, pred: bool) -> float:
         return float(
@@ -182,5 +181,4 @@ def _plot(rows: list[dict[str, Any]], cfg: Config, ctx: Context) -> str:
     fig.tight_layout()
     path = ctx.out / "tracking_success.png"
     fig.savefig(path, dpi=100)
-    plt.close(fig)
     return path.name
