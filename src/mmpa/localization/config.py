@@ -60,6 +60,23 @@ class AMCLConfig(BaseModel):
         """The AMCL paper 001 compares against and runs inside Algorithm 1: Nav2's defaults."""
         return cls()
 
+    @classmethod
+    def sparse_scans(cls) -> AMCLConfig:
+        """Hand-set values for real logs whose scans are 0.7-1 m and 10-20 degrees apart
+        (issue 34: the CARMEN logs, where Nav2's defaults diverge within 7-21 scans): the
+        beam model, motion noise ``alpha1..4 = 0.05``, ``z_hit = 0.95``, ``z_rand = 0.05``,
+        ``sigma_hit = 0.1`` m. Measured: docs/localization.md "Real logs"."""
+        return cls(
+            laser_model_type="beam",
+            alpha1=0.05,
+            alpha2=0.05,
+            alpha3=0.05,
+            alpha4=0.05,
+            z_hit=0.95,
+            z_rand=0.05,
+            sigma_hit=0.1,
+        )
+
 
 class ObserverConfig(BaseModel):
     """Detection, identification and trilateration settings."""

@@ -7,6 +7,8 @@ estimated ``dT_B`` with the truth (E_R, E_t of eq. 12-13, and the 6D vector diff
 from __future__ import annotations
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 from mmpa.experiments.paper000 import figures as paper000
 from mmpa.harness.ipe_eval import ipe_stats
@@ -195,12 +197,9 @@ def _site_summary(m: dict) -> dict:
 
 
 def plot_fig8(rows: list[dict], sites: list[str], path) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(2, 2, figsize=(9, 7))
+    fig = Figure(figsize=(9, 7))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots(2, 2)
     pairs = [("park_E_R", "E_R"), ("park_E_R", "E_t"), ("park_E_t", "E_R"), ("park_E_t", "E_t")]
     for a, (x, y) in zip(ax.ravel(), pairs, strict=True):
         for s in sites:
@@ -213,17 +212,13 @@ def plot_fig8(rows: list[dict], sites: list[str], path) -> str:
     fig.suptitle("Fig. 8: parking error vs IPE error (twin)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path.name
 
 
 def plot_fig9(rows: list[dict], iters: list[dict], sites: list[str], path) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(4, len(sites), figsize=(4 * len(sites), 12), squeeze=False)
+    fig = Figure(figsize=(4 * len(sites), 12))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots(4, len(sites), squeeze=False)
     for j, s in enumerate(sites):
         it = [q for q in iters if q["site"] == s and np.isfinite(q["E_t"])]
         ks = sorted({q["k"] for q in it})
@@ -245,5 +240,4 @@ def plot_fig9(rows: list[dict], iters: list[dict], sites: list[str], path) -> st
     fig.suptitle("Fig. 9: IPE per iteration (twin)")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
     return path.name

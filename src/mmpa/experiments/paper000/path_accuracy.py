@@ -10,6 +10,8 @@ tip was at teaching.
 from __future__ import annotations
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 from mmpa.experiments.paper000 import figures as paper000
 from mmpa.experiments.paper000.ipe import method_trials
@@ -114,12 +116,9 @@ def run(cfg: Config, ctx: Context) -> Outcome:
 
 def plot_fig10(rows: list[dict], sites: list[str], path) -> str:
     """Histogram-style picture of the needle-tip errors (the paper's Fig. 10 shows the dots)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    fig = Figure(figsize=(10, 4))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots(1, 2)
     for s in sites:
         r = [x for x in rows if x["site"] == s]
         for a, key in ((ax[0], "tmma_mm"), (ax[1], "mmpa_mm")):
@@ -134,5 +133,4 @@ def plot_fig10(rows: list[dict], sites: list[str], path) -> str:
         a.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path.name

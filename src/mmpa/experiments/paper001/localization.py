@@ -27,6 +27,8 @@ from contextlib import ExitStack
 from typing import Any
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from mmpa.backends.twin.error_model import ErrorModelConfig
@@ -442,14 +444,11 @@ def _kidnap_report(cfg: Config, summary: dict[str, Any]) -> str:
 
 
 def _plots(ctx: Context, traces: dict[str, dict[str, np.ndarray]]) -> list[str]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     if not traces:
         return []
-    fig, ax = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    fig = Figure(figsize=(8, 6))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots(2, 1, sharex=True)
     for m, tr in traces.items():
         e = tr["estimate"] - tr["truth"]
         ax[0].plot(tr["t"], 100 * np.hypot(e[:, 0], e[:, 1]), label=LABELS.get(m, m))
@@ -463,5 +462,4 @@ def _plots(ctx: Context, traces: dict[str, dict[str, np.ndarray]]) -> list[str]:
     ax[0].set_title("Fig. 9: error vs time, trial 0")
     fig.tight_layout()
     fig.savefig(ctx.out / "fig9_error_vs_time.png", dpi=100)
-    plt.close(fig)
     return ["fig9_error_vs_time.png"]

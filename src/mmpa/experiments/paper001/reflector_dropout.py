@@ -33,6 +33,8 @@ from contextlib import ExitStack
 from typing import Any
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 from pydantic import ConfigDict, Field
 
 from mmpa.backends.twin.operator import rough_initial_pose
@@ -562,14 +564,11 @@ def _report(
 
 
 def _plot(ctx: Context, cfg: Config, tr: dict[str, Any]) -> list[str]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     if not tr:
         return []
-    fig, ax = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
+    fig = Figure(figsize=(8, 8))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots(3, 1, sharex=True)
     for m in cfg.methods:
         e = np.asarray(tr[m])
         ax[0].plot(tr["t"], 1000 * e[:, 0], label=LABELS.get(m, m))
@@ -590,5 +589,4 @@ def _plot(ctx: Context, cfg: Config, tr: dict[str, Any]) -> list[str]:
     ax[0].set_title("Fig. 10: reflectors occluded (grey)")
     fig.tight_layout()
     fig.savefig(ctx.out / "fig10_dropout.png", dpi=100)
-    plt.close(fig)
     return ["fig10_dropout.png"]

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import ExitStack
 from typing import Any
 
 import numpy as np
@@ -193,7 +194,6 @@ def pass_job(
     ``record``: a folder for the pass's ROS 2 bag (``study-S-strategy-A-speed_cm_s-V-site-0-
     trial-R.mcap``: every state of the kinematic twin, the arm's ``/joint_states`` and
     ``/tf``, the true base and tool poses, the photosensor beam on ``/photosensor``)."""
-    from contextlib import ExitStack
 
     cfg = Config.model_validate_json(cfg_json)
     key = cfg.errors.model_dump_json()
