@@ -25,12 +25,12 @@ say so), ``traceback`` (an exception other than an mmpa error).
 
 No-false-alarm rates: the same recordings fed clean from the start (the share of updates
 with ``ok=False`` while the error is < 0.2 m), and, where ``/work/shared/real-data/laser``
-(or ``--real``) holds the CARMEN logs, AMCL (beam model, alphas 0.05, z_hit 0.95, z_rand
-0.05, sigma_hit 0.1) over each log from the true pose on a map built from its corrected
-trajectory: false alarms at error < 0.2 m, flags where it diverged past 1 m. For both, the
-health figures' extremes at error < 0.2 m (``extremes``: the lowest explained window, the
-highest crossed window, correction ratio and fix-to-estimate window): the margins to the
-thresholds.
+(or ``--real``) holds the CARMEN logs, AMCL (``AMCLConfig.sparse_scans()``: beam model,
+alphas 0.05, z_hit 0.95, z_rand 0.05, sigma_hit 0.1) over each log from the true pose on a
+map built from its corrected trajectory: false alarms at error < 0.2 m, flags where it
+diverged past 1 m. For both, the health figures' extremes at error < 0.2 m (``extremes``:
+the lowest explained window, the highest crossed window, correction ratio and
+fix-to-estimate window): the margins to the thresholds.
 
 Run::
 
@@ -318,16 +318,7 @@ def real_logs(root: Path, seed: int) -> dict[str, Any]:
     from mmpa.backends.bag.carmen import read_carmen
     from mmpa.maps.from_scans import occupancy_from_scans
 
-    cfg = AMCLConfig(
-        laser_model_type="beam",
-        alpha1=0.05,
-        alpha2=0.05,
-        alpha3=0.05,
-        alpha4=0.05,
-        z_hit=0.95,
-        z_rand=0.05,
-        sigma_hit=0.1,
-    )
+    cfg = AMCLConfig.sparse_scans()
     out: dict[str, Any] = {}
     for path in sorted(root.glob("*.log.gz")):
         log = read_carmen(path)

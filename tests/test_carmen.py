@@ -80,18 +80,7 @@ def test_health_on_a_stretch_of_the_intel_log() -> None:
     log = read_carmen(REAL / "intel-corrected.log.gz")
     k = 80
     grid = occupancy_from_scans(log.poses[:k], log.scans[:k], 0.05)
-    cfg = AMCLConfig(
-        laser_model_type="beam",
-        alpha1=0.05,
-        alpha2=0.05,
-        alpha3=0.05,
-        alpha4=0.05,
-        z_hit=0.95,
-        z_rand=0.05,
-        sigma_hit=0.1,
-        max_particles=500,
-        min_particles=200,
-    )
+    cfg = AMCLConfig.sparse_scans().model_copy(update={"max_particles": 500, "min_particles": 200})
     loc = make_localizer("amcl", grid, np.zeros(3), np.random.default_rng(0), amcl=cfg)
     loc.initialize(log.poses[0])
     good = 0

@@ -1,13 +1,18 @@
 """Offline localization over a bag: ``mmpa localize --bag BAG --map MAP.yaml``.
 
-:func:`localize_bag` feeds a localizer (:func:`~mmpa.localization.localizer.make_localizer`)
+:func:`localize_bag` feeds a localizer (:func:`~mmpa.localization.settings.build_localizer`)
 each recorded scan with the odometry a live robot had when the scan arrived
 (:class:`~mmpa.backends.bag.reader.BagOdometry`), from the recorded ``/initialpose`` (or one
-given), exactly as the twin's loops do; with the same method, seed and ``force`` as a
-recorded twin run it reproduces that run's estimates. :func:`run_localize` writes the run
-folder: ``estimate.csv``, ``estimate.mcap`` (``/amcl_pose``, ``/tf`` map -> odom), a
-trajectory plot ``trajectory.png`` and ``summary.json`` (with the error against
-``/truth/base_pose`` when the bag has it). Each estimate's health
+given; or, with ``global_localization``, from particles over the whole map), exactly as the
+twin's loops do; with the same method, seed and ``force`` as a recorded twin run it
+reproduces that run's estimates. Its settings are a :class:`LocalizeConfig`: the
+localizer's (:class:`~mmpa.localization.settings.LocalizationConfig`) and the run's, from
+the robot file, ``--config``, the options and ``--set``
+(:mod:`mmpa.apps.localization_settings`). :func:`run_localize` writes the run folder:
+``estimate.csv``, ``estimate.mcap`` (``/amcl_pose``, ``/tf`` map -> odom), a trajectory
+plot ``trajectory.png``, ``summary.json`` (with the error against ``/truth/base_pose`` when
+the bag has it, and the lidar mount used with its source) and ``config.yaml`` (the final
+settings). Each estimate's health
 (:mod:`mmpa.localization.health`: ``ok``, ``reason``, explained and crossed shares, spread)
 goes into ``estimate.csv`` (columns ``ok`` 1/0, ``explained``, ``crossed``, ``spread_xy``),
 ``not_ok.csv`` (time and reason of each estimate that was not ok), ``summary.json``
@@ -29,15 +34,21 @@ from typing import TYPE_CHECKING
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from mmpa.backends.bag import messages as rm
 from mmpa.backends.bag.reader import BagLidar, BagOdometry, BagPlayback, BagTopics, read_messages
 from mmpa.backends.bag.writer import BagWriter
+from mmpa.core.config import save_config
 from mmpa.core.errors import ConfigError, InvalidInputError
 from mmpa.core.geometry import Array, T_to_se2, inv, se2_to_T, wrap_angle
 from mmpa.localization.health import Health
-from mmpa.localization.localizer import make_localizer
+from mmpa.localization.settings import (
+    LocalizationConfig,
+    build_localizer,
+    initial_covariance,
+    start_localizer,
+)
 from mmpa.maps.map_server import load_map
 from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.maps.reflector_map import load_reflector_map
@@ -45,24 +56,32 @@ from mmpa.maps.reflector_map import load_reflector_map
 if TYPE_CHECKING:  # pragma: no cover
     from mmpa.maps.occupancy import OccupancyGrid
 
-__all__ = ["LocalizeConfig", "LocalizeResult", "grid_from_bag", "localize_bag", "run_localize"]
+__all__ = [
+    "LocalizeConfig",
+    "LocalizeResult",
+    "grid_from_bag",
+    "lidar_mount",
+    "localize_bag",
+    "run_localize",
+]
 
 
-class LocalizeConfig(BaseModel):
-    """Settings of an offline localization run."""
+class LocalizeConfig(LocalizationConfig):
+    """Settings of an offline localization run: the localizer's
+    (:class:`~mmpa.localization.settings.LocalizationConfig`: method, amcl, enhanced, hector,
+    initial_cov) and the run's."""
 
-    model_config = ConfigDict(extra="forbid")
-
-    method: str = "enhanced"  # one of mmpa.localization.localizer.METHODS
     seed: int = Field(0, ge=0)  # the localizer's random stream (the twin's demo: errors.seed)
     force: bool = False  # force every filter update (as localize_standing does)
     initial_pose: tuple[float, float, float] | None = None  # None: the bag's /initialpose
     # [x, y, yaw] of the lidar in base_link; None: the bag's /tf_static (base_frame -> the
-    # scan's frame_id), else robot_laser_pose, else refused (_laser_pose)
+    # scan's frame_id), else robot_laser_pose, else refused (lidar_mount)
     laser_pose: tuple[float, float, float] | None = None
     robot_laser_pose: tuple[float, float, float] | None = None  # the robot file's mount
     max_scans: int | None = Field(None, ge=1)
     topics: BagTopics = BagTopics()
+    # start with particles uniform over the map's free space (amcl, enhanced): no pose used
+    global_localization: bool = False
 
 
 @dataclass
@@ -78,7 +97,7 @@ class LocalizeResult:
     method: str
     seconds: float
     laser_pose: Array | None = None  # [x, y, yaw] of the lidar in base_link, as used
-    laser_pose_source: str = ""  # "user" | "tf_static" | "robot_file" (_laser_pose)
+    laser_pose_source: str = ""  # "user" | "tf_static" | "robot_file" (lidar_mount)
     ok: list[bool] | None = None  # per scan: the estimate's ok, reason and Health
     reason: list[str] | None = None
     health: list[Health] | None = None
@@ -137,7 +156,7 @@ def grid_from_bag(path: str | Path, topics: BagTopics | None = None) -> Occupanc
     return OccupancyGrid(data, res, (float(o.x), float(o.y), 0.0), refl, radius)
 
 
-def _laser_pose(pb: BagPlayback, cfg: LocalizeConfig) -> tuple[Array, str]:
+def lidar_mount(pb: BagPlayback, cfg: LocalizeConfig) -> tuple[Array, str]:
     """The lidar mount ``[x, y, yaw]`` in the base frame and where it came from: ``"user"``
     (``cfg.laser_pose``, ``--laser-pose``), ``"tf_static"`` (the bag's static transforms from
     ``topics.base_frame`` to the scans' own ``frame_id``, chained as tf2 does) or
@@ -178,6 +197,9 @@ def _laser_pose(pb: BagPlayback, cfg: LocalizeConfig) -> tuple[Array, str]:
     )
 
 
+_laser_pose = lidar_mount  # the former private name, kept for callers
+
+
 def localize_bag(
     playback: BagPlayback, grid: OccupancyGrid, cfg: LocalizeConfig | None = None
 ) -> LocalizeResult:
@@ -187,16 +209,19 @@ def localize_bag(
     pb = playback
     if not pb.scans:
         raise InvalidInputError(f"{pb.path}: no scans on {pb.topics.scan}")
-    mount, mount_source = _laser_pose(pb, cfg)
-    loc = make_localizer(cfg.method, grid, mount, np.random.default_rng(cfg.seed))
-    if cfg.initial_pose is not None:
-        loc.initialize(np.asarray(cfg.initial_pose, float))
-    elif pb.initial_pose is not None:
+    mount, mount_source = lidar_mount(pb, cfg)
+    loc = build_localizer(cfg, grid, mount, np.random.default_rng(cfg.seed))
+    if cfg.global_localization:
+        start_localizer(loc, cfg.method, None, global_localization=True)
+    elif cfg.initial_pose is not None:
+        start_localizer(loc, cfg.method, cfg.initial_pose, initial_covariance(cfg))
+    elif pb.initial_pose is not None:  # a zero covariance: the localizer's default
         _, pose, cov = pb.initial_pose
-        loc.initialize(pose, cov if np.any(cov) else None)  # zeros: the localizer's default
+        start_localizer(loc, cfg.method, pose, initial_covariance(cfg, cov))
     else:
         raise InvalidInputError(
-            f"{pb.path}: no initial pose on {pb.topics.initial_pose}; give one (--initial-pose)"
+            f"{pb.path}: no initial pose on {pb.topics.initial_pose}; give one "
+            "(--initial-pose) or start with --global"
         )
     lidar, odometry = BagLidar(pb), BagOdometry(pb)
     n = len(lidar) if cfg.max_scans is None else min(len(lidar), cfg.max_scans)
@@ -342,6 +367,7 @@ def run_localize(
         "reflectors": str(reflectors) if reflectors is not None else "the map's",
         "method": cfg.method,
         "seed": cfg.seed,
+        "start": "global" if cfg.global_localization else "initial pose",
         "scans": len(res.t),
         "odometry_messages": len(pb.odometry),
         "odometry_source": pb.odometry_source,
@@ -359,4 +385,5 @@ def run_localize(
     if errs is not None:
         summary.update(errs)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    save_config(cfg, out / "config.yaml")
     return summary

@@ -20,6 +20,7 @@ from mmpa.backends.twin.world import SimWorld
 from mmpa.core.config import load_config
 from mmpa.core.errors import ConfigError
 from mmpa.harness.twin_localization import twin_localizer
+from mmpa.localization.settings import LocalizationConfig, initial_covariance
 from mmpa.maps.map_server import save_map
 from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.maps.reflector_map import load_reflector_map
@@ -86,16 +87,23 @@ def navigate_twin(
     timeout: float = 120.0,
     reflector_map: Path | None = None,
     record: Path | None = None,
+    settings: LocalizationConfig | None = None,
 ) -> dict:
     """Drive the twin robot ``errors`` from site ``start`` to site ``to`` with the localizer
-    ``method`` (its particles from ``seed``) on the twin's map, its reflectors replaced by
-    those of ``reflector_map`` when given; record the drive to the bag ``record`` (FILE.mcap
-    or a rosbag2 folder) when given. Returns the summary (``reached``; ``reason`` when not)."""
+    ``method`` (its particles from ``seed``; its settings ``settings.amcl`` / ``enhanced`` /
+    ``hector`` and the initial covariance ``settings.initial_cov``, None: the defaults; its
+    ``method`` is not used) on the twin's map, its reflectors replaced by those of
+    ``reflector_map`` when given; record the drive to the bag ``record`` (FILE.mcap or a
+    rosbag2 folder) when given. Returns the summary (``reached``; ``reason`` when not)."""
+    st = settings or LocalizationConfig(method=method)
     bag = None
     with SimWorld(errors=errors, site=start) as world, ExitStack() as stack:
         goal = world.scene.site(to).pose2d
         grid = with_reflectors(twin_map(world), reflector_map)
-        loc = twin_localizer(world, method, np.random.default_rng(seed), grid=grid)
+        rng = np.random.default_rng(seed)
+        loc = twin_localizer(
+            world, method, rng, grid=grid, amcl=st.amcl, enhanced=st.enhanced, hector=st.hector
+        )
         robot = world
         if record is not None:  # the same run, observed (mmpa.backends.bag.Recorder)
             bag = stack.enter_context(BagWriter(record, overwrite=True))
@@ -105,7 +113,8 @@ def navigate_twin(
             robot = recorder.world()
             recorder.write_map(grid)
             loc = recorder.localizer(loc)
-        loc.initialize(rough_initial_pose(world))  # the operator's rough pose
+        # the operator's rough pose
+        loc.initialize(rough_initial_pose(world), initial_covariance(st))
         cm = CostMap(twin_nav_map(world))
         res = navigate(
             robot,

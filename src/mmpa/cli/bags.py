@@ -37,6 +37,47 @@ def _robot_laser_pose(ctx: typer.Context) -> tuple[float, float, float] | None:
     return x, y, yaw
 
 
+def parse_cov3(text: str | None) -> tuple[float, float, float] | None:
+    if text is None:
+        return None
+    try:
+        vals = tuple(float(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        raise typer.BadParameter(f"--initial-cov must be 'xx,yy,aa', got {text!r}") from None
+    if len(vals) != 3:
+        raise typer.BadParameter(f"--initial-cov must be three variances 'xx,yy,aa', got {text!r}")
+    return vals  # type: ignore[return-value]
+
+
+ConfigOpt = Annotated[
+    Path | None,
+    typer.Option("--config", "-c", help="YAML settings (method, amcl, enhanced, hector, ...)."),
+]
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option("--set", help="Override: key=value, e.g. amcl.alpha1=0.05 (repeat)."),
+]
+MethodOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="amcl | enhanced | enhanced-paper | trilateration | tamcl | hector (default: "
+        "the robot file's localization.method, else enhanced)."
+    ),
+]
+InitialCovOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="Initial covariance 'xx,yy,aa' (m^2, m^2, rad^2; default: the bag's "
+        "/initialpose, else amcl.initial_cov_*)."
+    ),
+]
+
+
+def robot_file(ctx: typer.Context) -> Path | None:
+    """The robot file given with ``mmpa --robot FILE`` (None: none)."""
+    return ctx.find_root().params.get("robot")
+
+
 def localize_cmd(
     ctx: typer.Context,
     bag: Annotated[Path, typer.Option("--bag", help="ROS 1 .bag, rosbag2 folder, .mcap or .db3.")],
@@ -51,16 +92,25 @@ def localize_cmd(
             "(default: the robot file's reflector_map, mmpa --robot FILE)."
         ),
     ] = None,
-    method: Annotated[
-        str, typer.Option(help="amcl | enhanced | enhanced-paper | trilateration | tamcl | hector")
-    ] = "enhanced",
+    method: MethodOpt = None,
     out: Annotated[Path, typer.Option(help="Run folder to write.")] = Path("runs/localize"),
-    seed: Annotated[int, typer.Option(help="Seed of the localizer's random stream.", min=0)] = 0,
+    seed: Annotated[
+        int | None, typer.Option(help="Seed of the localizer's random stream (default 0).", min=0)
+    ] = None,
     force: Annotated[
-        bool, typer.Option(help="Force every filter update (also while standing).")
-    ] = False,
+        bool | None, typer.Option(help="Force every filter update (also while standing).")
+    ] = None,
     initial_pose: Annotated[
         str | None, typer.Option(help="'x,y,yaw' (default: the bag's /initialpose).")
+    ] = None,
+    initial_cov: InitialCovOpt = None,
+    global_: Annotated[
+        bool | None,
+        typer.Option(
+            "--global",
+            help="Global localization: particles over the whole map, no initial pose "
+            "(amcl, enhanced; e.g. --set amcl.max_particles=10000).",
+        ),
     ] = None,
     laser_pose: Annotated[
         str | None,
@@ -69,28 +119,37 @@ def localize_cmd(
             "base_link to the scans' frame_id, else the robot file's lidar mount)."
         ),
     ] = None,
-    scan_topic: Annotated[str, typer.Option(help="LaserScan topic.")] = "/scan",
-    odom_topic: Annotated[str, typer.Option(help="Odometry topic.")] = "/odom",
+    scan_topic: Annotated[str | None, typer.Option(help="LaserScan topic (/scan).")] = None,
+    odom_topic: Annotated[str | None, typer.Option(help="Odometry topic (/odom).")] = None,
     max_scans: Annotated[
         int | None, typer.Option(help="Stop after this many scans.", min=1)
     ] = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ) -> None:
     """Run a localizer over a bag's scans and odometry; write estimate.csv, estimate.mcap
-    (/amcl_pose), trajectory.png and summary.json (with the error when the bag has
-    /truth/base_pose)."""
-    from mmpa.apps.localize import BagTopics, LocalizeConfig, run_localize
+    (/amcl_pose), trajectory.png, summary.json (with the error when the bag has
+    /truth/base_pose, and the lidar mount used) and config.yaml (the final settings).
+    Settings, lowest first: defaults, the robot file's localization section, --config, the
+    options, --set."""
+    from mmpa.apps.localization_settings import load_localization_config
+    from mmpa.apps.localize import LocalizeConfig, run_localize
 
+    topics = {"scan": scan_topic, "odom": odom_topic}
     try:
-        cfg = LocalizeConfig(
-            method=method,
-            seed=seed,
-            force=force,
-            initial_pose=_pose3(initial_pose, "--initial-pose"),
-            laser_pose=_pose3(laser_pose, "--laser-pose"),
-            robot_laser_pose=_robot_laser_pose(ctx),
-            max_scans=max_scans,
-            topics=BagTopics(scan=scan_topic, odom=odom_topic),
-        )
+        options = {
+            "method": method,
+            "seed": seed,
+            "force": force,
+            "initial_pose": _pose3(initial_pose, "--initial-pose"),
+            "initial_cov": parse_cov3(initial_cov),
+            "global_localization": global_,
+            "laser_pose": _pose3(laser_pose, "--laser-pose"),
+            "robot_laser_pose": _robot_laser_pose(ctx),
+            "max_scans": max_scans,
+            "topics": {k: v for k, v in topics.items() if v is not None} or None,
+        }
+        cfg = load_localization_config(LocalizeConfig, robot_file(ctx), config, options, set_ or [])
         with console.status(f"localizing over {bag}"):
             refl = reflectors or robot_reflector_map(ctx)
             summary = run_localize(bag, out_dir(out), map_yaml, cfg, reflectors=refl)

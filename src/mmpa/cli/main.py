@@ -313,6 +313,7 @@ def run_cmd(
 
 from mmpa.cli import bags as _bags  # noqa: E402  (registers localize)
 from mmpa.cli import calibrate as _calibrate  # noqa: E402  (registers calibrate)
+from mmpa.cli import datasets as _datasets  # noqa: E402  (registers convert, benchmark)
 from mmpa.cli import navigation as _navigation  # noqa: E402  (registers navigate, map)
 from mmpa.cli import register as _register  # noqa: E402  (registers register)
 from mmpa.cli import robot as _robot  # noqa: E402  (registers robot)
@@ -324,6 +325,7 @@ _robot.register(app)
 _calibrate.register(app)
 _register.register(app)
 _sweep.register(app)
+_datasets.register(app)
 
 
 def main() -> None:

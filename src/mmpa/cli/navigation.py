@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
+from mmpa.cli.bags import ConfigOpt, InitialCovOpt, MethodOpt, SetOpt, parse_cov3, robot_file
 from mmpa.cli.common import ProfileOpt, console, fail, in_range, out_dir, robot_reflector_map
 from mmpa.core.errors import MMPAError
 
@@ -27,11 +28,11 @@ def navigate_cmd(
     ctx: typer.Context,
     to: Annotated[str, typer.Option("--to", help="Goal site (e.g. 1, 2).")],
     start: Annotated[str, typer.Option("--from", help="Start site.")] = "0",
-    method: Annotated[
-        str, typer.Option(help="amcl | enhanced | enhanced-paper | trilateration | tamcl | hector")
-    ] = "enhanced",
+    method: MethodOpt = None,
     seed: Annotated[int, typer.Option(help="Robot instance / noise seed.", min=0)] = 0,
-    out: Annotated[Path | None, typer.Option(help="Write summary.json here.")] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="Write summary.json and config.yaml here.")
+    ] = None,
     timeout: Annotated[
         float, typer.Option(help="Simulated seconds.", callback=in_range(0.0, 86400.0))
     ] = 120.0,
@@ -47,22 +48,35 @@ def navigate_cmd(
             "(default: the robot file's reflector_map, e.g. from mmpa calibrate reflectors)."
         ),
     ] = None,
+    initial_cov: InitialCovOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
 ) -> None:
     """Drive the twin from a site to ``--to`` on the localization estimate (started from the
     operator's rough pose); print the parking error (truth vs goal) and the localization error
-    (estimate vs truth) at the end."""
+    (estimate vs truth) at the end. Localization settings, lowest first: defaults, the
+    robot file's localization section, --config, the options, --set."""
+    from mmpa.apps.localization_settings import LocalizationConfig, load_localization_config
     from mmpa.apps.navigate import navigate_twin
+    from mmpa.core.config import save_config
 
     try:
+        options = {"method": method, "initial_cov": parse_cov3(initial_cov)}
+        st = load_localization_config(
+            LocalizationConfig, robot_file(ctx), config, options, set_ or []
+        )
         errors = _errors(seed, profile)
         refl_map = reflectors or robot_reflector_map(ctx)
-        with console.status(f"navigating site {start} -> site {to} ({method})"):
-            summary = navigate_twin(errors, start, to, method, seed, timeout, refl_map, record)
+        with console.status(f"navigating site {start} -> site {to} ({st.method})"):
+            summary = navigate_twin(
+                errors, start, to, st.method, seed, timeout, refl_map, record, settings=st
+            )
     except MMPAError as e:
         fail(e)
     if out is not None:
         out_dir(out)
         (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        save_config(st, out / "config.yaml")
     t = Table(title=f"mmpa navigate --to {to}", show_header=False)
     for k, v in summary.items():
         t.add_row(k, str(v))

@@ -21,11 +21,13 @@ _frames = None
 def use_robot_file(path: Path) -> None:
     """Load ``path`` and make it the robot of every command of this process."""
     global _frames
+    from mmpa.apps.localization_settings import check_robot_localization
     from mmpa.robot.description import set_default_robot
     from mmpa.robot.robot_file import load_robot
 
     try:
         robot, _frames = load_robot(path)
+        check_robot_localization(path)  # a malformed localization section: refused now
     except MMPAError as e:
         fail(e)
     set_default_robot(robot)

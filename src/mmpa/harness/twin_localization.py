@@ -12,6 +12,8 @@ from mmpa.backends.twin.twin_maps import laser_pose2d, twin_map
 from mmpa.backends.twin.world import SimWorld
 from mmpa.core.geometry import Array
 from mmpa.localization.amcl import AMCLConfig
+from mmpa.localization.config import EnhancedConfig
+from mmpa.localization.hector import HectorConfig
 from mmpa.localization.localizer import Localizer, make_localizer
 from mmpa.maps.occupancy import OccupancyGrid
 
@@ -26,6 +28,8 @@ def twin_localizer(
     grid: OccupancyGrid | None = None,
     mount: Array | None = None,
     amcl: AMCLConfig | None = None,
+    enhanced: EnhancedConfig | None = None,
+    hector: HectorConfig | None = None,
 ) -> Localizer:
     """:func:`~mmpa.localization.localizer.make_localizer` for the twin ``world``: on ``grid``
     (default :func:`~mmpa.backends.twin.twin_maps.twin_map` at 5 cm, reflectors included)
@@ -35,7 +39,7 @@ def twin_localizer(
     :func:`~mmpa.backends.twin.operator.rough_initial_pose`, or an estimate)."""
     grid = twin_map(world) if grid is None else grid
     mount = laser_pose2d(world) if mount is None else mount
-    return make_localizer(method, grid, mount, rng, amcl=amcl)
+    return make_localizer(method, grid, mount, rng, amcl=amcl, enhanced=enhanced, hector=hector)
 
 
 def errors_follow_seed(cfg: Any) -> Any:

@@ -37,7 +37,7 @@ from mmpa.localization.enhanced import (
     ReflectorObserver,
 )
 from mmpa.localization.health import HealthConfig
-from mmpa.localization.hector import HectorMatcher
+from mmpa.localization.hector import HectorConfig, HectorMatcher
 from mmpa.localization.monitor import MonitoredLocalizer
 from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan
@@ -176,12 +176,14 @@ def make_localizer(
     enhanced: EnhancedConfig | None = None,
     health: HealthConfig | None = None,
     monitor: bool = True,
+    hector: HectorConfig | None = None,
 ) -> Localizer:
     """Build the localizer called ``method`` (one of :data:`METHODS`); with ``monitor`` (the
     default) wrapped in a :class:`~mmpa.localization.monitor.MonitoredLocalizer`, so that
     every estimate carries its health and says ``ok=False`` when lost (``health``: its
-    thresholds)."""
-    loc = _make_bare(method, grid, laser_pose, rng, amcl, enhanced)
+    thresholds). ``amcl`` / ``enhanced`` / ``hector``: the settings of those methods (None:
+    their defaults; ``amcl`` is also the AMCL inside enhanced and tamcl)."""
+    loc = _make_bare(method, grid, laser_pose, rng, amcl, enhanced, hector)
     return MonitoredLocalizer(loc, grid, laser_pose, health) if monitor else loc
 
 
@@ -192,6 +194,7 @@ def _make_bare(
     rng: np.random.Generator | None,
     amcl: AMCLConfig | None,
     enhanced: EnhancedConfig | None,
+    hector: HectorConfig | None = None,
 ) -> Localizer:
     laser_pose = finite_pose(laser_pose, "laser pose")
     if method == "amcl":
@@ -211,5 +214,5 @@ def _make_bare(
     if method == "tamcl":
         return TAMCL(grid, laser_pose, amcl, None, rng)
     if method == "hector":
-        return HectorMatcher(grid, laser_pose)
+        return HectorMatcher(grid, laser_pose, hector)
     raise UnknownNameError("localization method", method, list(METHODS))

@@ -18,6 +18,12 @@ plus two shortcuts under ``arm``:
 relative path is read beside the robot file (:func:`robot_reflector_map`). It is not part
 of the :class:`RobotDescription`: :func:`load_robot` accepts and skips it.
 
+``localization:`` (optional) holds the robot's localization settings: ``method``, ``amcl``
+(Nav2's ``amcl`` parameter names), ``enhanced``, ``hector``, ``initial_cov`` (the model is
+:class:`mmpa.localization.settings.LocalizationConfig`, checked by the commands that localize;
+:func:`robot_localization` returns the section as written). Like ``reflector_map`` it is not
+part of the :class:`RobotDescription`.
+
 ``frames`` names mmpa's frames as a ROS system does (REP-105 for the base, ur_description
 for the arm), with optional prefixes; :func:`frame_names` maps mmpa's names to them.
 
@@ -29,6 +35,7 @@ Example::
     lidar: {T_base_link_laser_vec: [0.3, 0.0, 0.2, 0.0, 0.0, 0.0], num_beams: 720,
             angle_increment: 0.008726646}
     frames: {prefix: "", arm_prefix: "ur_"}
+    localization: {method: amcl, amcl: {laser_model_type: beam, alpha1: 0.05}}
 """
 
 from __future__ import annotations
@@ -51,6 +58,7 @@ __all__ = [
     "frame_names",
     "load_robot",
     "read_ur_calibration",
+    "robot_localization",
     "robot_reflector_map",
     "robot_to_yaml",
     "save_robot",
@@ -221,6 +229,7 @@ def load_robot(path: str | Path) -> tuple[RobotDescription, FrameNames]:
         raise ConfigError(f"{p}: a robot file must be a YAML mapping")
     doc = dict(doc)
     _reflector_map_entry(doc.pop("reflector_map", None), p)
+    _localization_entry(doc.pop("localization", None), p)
     try:
         frames = FrameNames.model_validate(doc.pop("frames", None) or {})
     except ValidationError as e:
@@ -243,6 +252,31 @@ def _reflector_map_entry(value: Any, where: Path) -> Path | None:
         )
     path = Path(value)
     return path if path.is_absolute() else where.parent / path
+
+
+def _localization_entry(value: Any, where: Path) -> dict[str, Any] | None:
+    """The ``localization`` section of robot file ``where``: None or a mapping."""
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise ConfigError(
+            f"{where}: localization: must be a mapping (method, amcl, enhanced, hector, "
+            f"initial_cov), got {type(value).__name__}"
+        )
+    return dict(value)
+
+
+def robot_localization(path: str | Path) -> dict[str, Any] | None:
+    """The ``localization`` section of robot file ``path`` as written (a mapping), or None;
+    its values are checked by the command that uses them
+    (:class:`mmpa.localization.settings.LocalizationConfig`)."""
+    p = Path(path)
+    doc = load_yaml(p)
+    if doc is None:
+        return None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{p}: a robot file must be a YAML mapping")
+    return _localization_entry(doc.get("localization"), p)
 
 
 def robot_reflector_map(path: str | Path) -> Path | None:
