@@ -16,6 +16,14 @@ have_lib libusb-1.0.so.0 || need+=(libusb-1.0-0)
 have_lib libOSMesa.so || need+=(libosmesa6)
 have_lib libGL.so.1 || need+=(libgl1)
 have_lib libEGL.so.1 || need+=(libegl1)
+# ROS 2 (the extra ros2, x86-64 Linux; MMPA_ROS2=0 leaves it out): cmake and a C/C++ compiler
+# build the interface packages that are not published as wheels (scripts/ros2-interfaces.sh)
+ROS2=${MMPA_ROS2:-1}
+[ "$(uname -sm)" = "Linux x86_64" ] || ROS2=0
+if [ "$ROS2" = 1 ]; then
+  command -v cmake >/dev/null || need+=(cmake)
+  command -v g++ >/dev/null || need+=(g++)
+fi
 if ((${#need[@]})); then
   echo "[setup] installing system libraries: ${need[*]}"
   SUDO=""
@@ -31,14 +39,19 @@ fi
 "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 11))' || {
   echo "[setup] mmpa needs Python >= 3.11; set PYTHON=python3.11" >&2; exit 1; }
 [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
-stamp=$(cat pyproject.toml constraints.txt scripts/setup.sh | sha256sum | cut -c1-16)-$FLAVOR
+EXTRAS=dev,$FLAVOR,perception
+[ "$ROS2" = 0 ] || EXTRAS+=,ros2
+stamp=$(cat pyproject.toml constraints.txt scripts/setup.sh | sha256sum | cut -c1-16)-$EXTRAS
 if [ "$(cat .setup-stamp 2>/dev/null)" != "$stamp" ]; then
-  echo "[setup] installing mmpa[dev,$FLAVOR,perception] into $VENV"
+  echo "[setup] installing mmpa[$EXTRAS] into $VENV"
   "$VENV/bin/python" -m pip install -q --upgrade pip
   # constraints.txt pins the exact versions tested together (regenerate with
   # `.venv/bin/pip freeze --exclude-editable | grep -v ^mmpa > constraints.txt`)
   cons=(-c constraints.txt)
   [ "$FLAVOR" = cpu ] || cons=()  # the CUDA flavor resolves its own Open3D dependencies
-  "$VENV/bin/python" -m pip install -q "${cons[@]}" -e ".[dev,$FLAVOR,perception]"
+  "$VENV/bin/python" -m pip install -q "${cons[@]}" -e ".[$EXTRAS]"
   echo "$stamp" > .setup-stamp
 fi
+
+# 3. ROS 2 interface packages without wheels (tf2_msgs, nav2_msgs): built once into the venv.
+[ "$ROS2" = 0 ] || VENV="$VENV" bash scripts/ros2-interfaces.sh
