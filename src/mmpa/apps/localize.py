@@ -18,7 +18,9 @@ goes into ``estimate.csv`` (columns ``ok`` 1/0, ``explained``, ``crossed``, ``sp
 ``not_ok.csv`` (time and reason of each estimate that was not ok), ``summary.json``
 (``health``: the ``ok=False`` count, first reasons, medians and minima) and
 ``estimate.mcap`` (``/diagnostics``, ``diagnostic_msgs/DiagnosticArray``: level ERROR with
-the reason when not ok).
+the reason when not ok). A localizer that refuses matches of its own (Hector: ``refusals``,
+``last_refusal``) has them in ``estimate.csv`` (column ``refused`` 1/0) and ``summary.json``
+(``refusals``: count and first distinct reasons; null for the others).
 """
 
 from __future__ import annotations
@@ -101,6 +103,20 @@ class LocalizeResult:
     ok: list[bool] | None = None  # per scan: the estimate's ok, reason and Health
     reason: list[str] | None = None
     health: list[Health] | None = None
+    refused: list[bool] | None = None  # per scan: the localizer refused its match (Hector)
+    refusal_reason: list[str] | None = None
+
+    def refusal_summary(self) -> dict | None:
+        """The localizer's own refusals: count, updates, first distinct reasons; None for a
+        localizer that has none (no ``refusals`` counter)."""
+        if self.refused is None or self.refusal_reason is None:
+            return None
+        reasons = [r for r, x in zip(self.refusal_reason, self.refused, strict=True) if x]
+        return {
+            "count": int(sum(self.refused)),
+            "updates": len(self.refused),
+            "reasons": list(dict.fromkeys(reasons))[:5],
+        }
 
     def health_summary(self) -> dict:
         """Counts of ``ok=False`` estimates, their first distinct reasons, and the median /
@@ -227,11 +243,18 @@ def localize_bag(
     n = len(lidar) if cfg.max_scans is None else min(len(lidar), cfg.max_scans)
     ts, est, covs, odoms, truth = [], [], [], [], []
     oks, reasons, healths = [], [], []
+    counts = hasattr(loc, "refusals")  # Hector counts the matches it refused
+    refused: list[bool] = []
+    refusal_reason: list[str] = []
     t0 = time.perf_counter()
     for _ in range(n):
         scan = lidar.scan()
         odom = odometry.odometry().pose
+        before = int(getattr(loc, "refusals", 0))
         res = loc.update(odom, scan, force=cfg.force)
+        if counts:
+            refused.append(int(loc.refusals) > before)
+            refusal_reason.append(str(loc.last_refusal) if refused[-1] else "")
         ts.append(scan.stamp)
         est.append(loc.pose_at(odom))
         covs.append(np.asarray(res.cov, float))
@@ -255,6 +278,8 @@ def localize_bag(
         ok=oks,
         reason=reasons,
         health=healths,
+        refused=refused if counts else None,
+        refusal_reason=refusal_reason if counts else None,
     )
 
 
@@ -273,6 +298,9 @@ def _write_csv(path: Path, res: LocalizeResult) -> None:
             for o, x in zip(res.ok, res.health, strict=True)
         ]
         rows.append(np.array(h, float).reshape(-1, 4))
+    if res.refused is not None:
+        cols.append("refused")
+        rows.append(np.array(res.refused, float).reshape(-1, 1))
     table = np.hstack(rows)
     np.savetxt(path, table, delimiter=",", header=",".join(cols), comments="", fmt="%.9g")
     if not judged:
@@ -380,6 +408,7 @@ def run_localize(
         "final_estimate": [round(float(v), 6) for v in res.estimate[-1]],
         "truth": res.truth is not None,
         "health": res.health_summary(),
+        "refusals": res.refusal_summary(),
     }
     errs = res.errors()
     if errs is not None:

@@ -3,39 +3,58 @@
 Hector aligns each scan with the occupancy map by Gauss-Newton on
 ``sum_i (1 - M(S_i(xi)))^2``, ``M`` the bilinearly interpolated map value and ``S_i(xi)`` the
 scan endpoint ``i`` moved by the pose ``xi = (x, y, theta)``, coarse to fine over a pyramid of
-maps (here 3 levels: the map at 1x, 2x and 4x cell size). Hector SLAM also updates the map; the
-paper's baseline localizes in an already built map, so the map stays fixed here. The initial
-guess is the previous match moved by the odometry increment.
+maps (3 levels: the map at 1x, 2x and 4x cell size). Hector SLAM also updates the map; the
+paper's baseline localizes in an already built map, so the map stays fixed here. The start of
+each match is the previous match moved by the odometry increment (the odometry prediction).
+:meth:`HectorConfig.paper` is that algorithm as published (undamped steps, blurred occupancy
+pyramid); the defaults are improvements (:mod:`mmpa.localization.hector_match` has the math):
 
-Map values are a blurred occupancy (Gaussian, one cell) so that the gradient reaches a little
-beyond the walls, as Hector's interpolation of log-odds does.
+- the residual is the distance to the nearest occupied cell of the FINE map at every level,
+  under a Geman-McClure loss whose scale halves from level to level (the coarse levels of the
+  published pyramid move walls by up to half a coarse cell, and the blurred binary map's
+  peaks depend on how thick a wall is: both pull a match off a correct start);
+- damped Levenberg-Marquardt steps, each taken only when it lowers the cost (on the finest
+  level: only when it raises the score), with convergence tests (undamped Gauss-Newton
+  overshoots and oscillates on a real map while its score falls);
+- a correlative search around the odometry prediction before the fit (real odometry between
+  sparse scans is off by up to 0.45 m / 30 deg, beyond any gradient fit's reach).
 
-Failure signal (improvement): Gauss-Newton always returns a pose, even for a scan that fits
-nothing. The match's score is the mean map value at the matched endpoints on the finest level
-(1 on the walls, 0 in free space); below ``min_score``, or farther than ``max_jump`` from the
-odometry guess, the match is rejected: the estimate stays on odometry and the result says
-``ok=False`` with the reason (``last_score``; ``failures`` counts them). Limits: a scan that
-fits the map somewhere near is not caught by one scan's numbers. Measurements behind the
-gates: ``docs/localization.md``.
+Refusals (improvement): a fit always returns a pose, even for a scan that fits nothing. The
+match's score is 0..1 (1 with every endpoint on a wall, ``hector_match``); below
+``min_score``, farther than ``max_jump`` from the odometry prediction, not finite, or from
+fewer than 10 valid beams, the match is refused: the estimate stays on odometry, the result
+says ``ok=False`` with the reason, ``refusals`` counts them and ``last_refusal`` holds the last
+reason ('' after an accepted match). Limits: a scan that fits the map somewhere near is not
+caught by one scan's numbers. Measurements behind the gates and the defaults:
+``docs/localization.md``.
 
 Units: m, rad; poses ``[x, y, theta]`` in ``map``, the lidar mount in ``base_link``.
 """
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy import ndimage
 
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array
 from mmpa.localization.amcl import (
     PoseEstimate,
-    _wrap,
     check_scan,
     compose_odom,
     finite_cov,
     finite_pose,
+)
+from mmpa.localization.hector_match import (
+    DistanceLevels,
+    Fit,
+    OccupancyLevels,
+    correlative_search,
+    gauss_newton,
+    levenberg_marquardt,
+    move,
 )
 from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan
@@ -44,72 +63,83 @@ __all__ = ["HectorConfig", "HectorMatcher"]
 
 
 class HectorConfig(BaseModel):
+    """Hector's settings; :meth:`paper` for the published algorithm. Units: m, rad."""
+
     model_config = ConfigDict(extra="forbid")
 
-    levels: int = Field(3, ge=1, le=5)
-    iterations: int = Field(8, ge=1)  # Gauss-Newton steps per level
+    # "distance": the fine map's distance field at every level (improvement); "occupancy":
+    # the published blurred occupancy pyramid
+    field: Literal["distance", "occupancy"] = "distance"
+    levels: int = Field(3, ge=1, le=5)  # pyramid levels / loss scales (x2 per level)
+    iterations: int = Field(10, ge=1)  # steps per level
     max_beams: int = Field(360, ge=10)
-    blur_cells: float = Field(1.0, ge=0)
-    # mean map value at the matched endpoints (1 on the walls, 0 in free space): below this a
-    # match fits nothing
-    min_score: float = Field(0.12, ge=0, le=1)
-    # m: a match this far from the odometry guess is rejected
+    blur_cells: float = Field(1.0, ge=0)  # occupancy field: Gaussian blur (cells)
+    sigma_cells: float = Field(1.0, gt=0)  # distance field: finest loss scale (cells)
+    # "lm": damped steps taken only when they lower the cost; "gauss_newton": as published
+    step: Literal["lm", "gauss_newton"] = "lm"
+    tol_xy: float = Field(1e-4, gt=0)  # lm: a smaller step ends a level
+    tol_theta: float = Field(1e-4, gt=0)
+    # correlative search around the odometry prediction (0 and 0: none): half-widths, step
+    search_xy: float = Field(0.3, ge=0)
+    search_theta: float = Field(0.35, ge=0)
+    search_step: float = Field(0.1, gt=0)
+    search_prior: float = Field(0.05, ge=0)  # score penalty at the window's edge
+    # score (0..1) below which a match fits nothing (docs/localization.md)
+    min_score: float = Field(0.3, ge=0, le=1)
+    # m: a match this far from the odometry prediction is refused
     max_jump: float = Field(1.0, gt=0)
 
-
-class _Level:
-    def __init__(self, occ: np.ndarray, res: float, origin: tuple[float, float], blur: float):
-        m = occ.astype(float)
-        if blur > 0:
-            m = ndimage.gaussian_filter(m, blur)
-            m = m / max(float(m.max()), 1e-9)
-        self.m = m
-        self.res = res
-        self.origin = origin
-
-    def value_grad(self, pts: Array) -> tuple[Array, Array]:
-        """Bilinear map value (k,) and gradient (k, 2) (per m) at points (k, 2)."""
-        gx = (pts[:, 0] - self.origin[0]) / self.res - 0.5
-        gy = (pts[:, 1] - self.origin[1]) / self.res - 0.5
-        h, w = self.m.shape
-        x0 = np.clip(np.floor(gx).astype(int), 0, w - 2)
-        y0 = np.clip(np.floor(gy).astype(int), 0, h - 2)
-        fx = np.clip(gx - x0, 0, 1)
-        fy = np.clip(gy - y0, 0, 1)
-        m00 = self.m[y0, x0]
-        m10 = self.m[y0, x0 + 1]
-        m01 = self.m[y0 + 1, x0]
-        m11 = self.m[y0 + 1, x0 + 1]
-        val = fy * (fx * m11 + (1 - fx) * m01) + (1 - fy) * (fx * m10 + (1 - fx) * m00)
-        dx = (fy * (m11 - m01) + (1 - fy) * (m10 - m00)) / self.res
-        dy = (fx * (m11 - m10) + (1 - fx) * (m01 - m00)) / self.res
-        return val, np.column_stack([dx, dy])
+    @classmethod
+    def paper(cls) -> HectorConfig:
+        """Hector as published: occupancy pyramid of 3 levels blurred by one cell, 8
+        undamped Gauss-Newton steps per level, no search; the former gates (score 0.12)."""
+        return cls(
+            field="occupancy",
+            levels=3,
+            iterations=8,
+            blur_cells=1.0,
+            step="gauss_newton",
+            search_xy=0.0,
+            search_theta=0.0,
+            min_score=0.12,
+        )
 
 
 class HectorMatcher:
-    """Hector-style scan matcher behind the Localizer interface."""
+    """Hector-style scan matcher behind the Localizer interface (module docstring)."""
 
     name = "hector"
 
     def __init__(
         self, grid: OccupancyGrid, laser_pose: Array, cfg: HectorConfig | None = None
     ) -> None:
-        self.cfg = cfg or HectorConfig()
+        self.cfg = c = cfg or HectorConfig()
         self.laser_pose = np.asarray(laser_pose, float).reshape(3)
         occ = grid.occupied
-        self.levels: list[_Level] = []
-        for k in range(self.cfg.levels):
-            f = 2**k
-            h, w = occ.shape[0] // f, occ.shape[1] // f
-            o = occ[: h * f, : w * f].reshape(h, f, w, f).any(axis=(1, 3))
-            self.levels.append(
-                _Level(o, grid.resolution * f, grid.origin[:2], self.cfg.blur_cells)  # type: ignore[arg-type]
-            )
+        res = float(grid.resolution)
+        origin = (float(grid.origin[0]), float(grid.origin[1]))
+        self._res, self._origin = res, origin
+        self.field: OccupancyLevels | DistanceLevels
+        if c.field == "occupancy":
+            self.field = OccupancyLevels(occ, res, origin, c.levels, c.blur_cells)
+        else:
+            self.field = DistanceLevels(occ, res, origin, c.levels, c.sigma_cells * res)
+        self._table: Array | None = None
+        if c.search_xy > 0 or c.search_theta > 0:
+            d = grid.distance_field(max(4 * c.search_step, 2 * res))
+            self._table = np.exp(-0.5 * (d / c.search_step) ** 2)
         self._pose: Array | None = None
         self._odom: Array | None = None
         self._cov = np.diag([0.01, 0.01, 0.01])
         self.last_score = float("nan")  # score of the last match (see min_score)
-        self.failures = 0  # rejected matches so far
+        self.last_fit: Fit | None = None
+        self.refusals = 0  # refused matches so far
+        self.last_refusal = ""  # why the last match was refused ('' if accepted)
+
+    @property
+    def failures(self) -> int:
+        """The former name of :attr:`refusals`."""
+        return self.refusals
 
     def initialize(self, pose: Array, cov: Array | None = None) -> None:
         self._pose = finite_pose(pose, "initial pose").copy()
@@ -126,6 +156,8 @@ class HectorMatcher:
         return compose_odom(self._pose, self._odom, odom_pose)
 
     def _endpoints_base(self, scan: LaserScan) -> Array:
+        """(k, 2) endpoints of up to ``max_beams`` valid beams (evenly picked) in
+        ``base_link``: ``t_l + r [cos(a + theta_l), sin(a + theta_l)]``."""
         m = scan.valid()
         idx = np.flatnonzero(m)
         if idx.size > self.cfg.max_beams:
@@ -135,65 +167,78 @@ class HectorMatcher:
         px, py = r * np.cos(a + lth) + lx, r * np.sin(a + lth) + ly
         return np.column_stack([px, py])
 
+    def fit(self, guess: Array, pts: Array) -> Fit:
+        """Search (if set) and fit from ``guess`` (module docstring) for the endpoints
+        ``pts`` (k, 2) in ``base_link``."""
+        c = self.cfg
+        start = np.asarray(guess, float)
+        if self._table is not None:
+            start = correlative_search(
+                self._table,
+                self._res,
+                self._origin,
+                start,
+                pts,
+                c.search_xy,
+                c.search_theta,
+                c.search_step,
+                c.search_prior,
+            )
+        if c.step == "gauss_newton":
+            return gauss_newton(self.field, start, pts, c.iterations)
+        return levenberg_marquardt(self.field, start, pts, c.iterations, c.tol_xy, c.tol_theta)
+
     def match(self, guess: Array, pts: Array) -> tuple[Array, Array]:
-        """Gauss-Newton coarse to fine from ``guess``; returns the pose and ``H^-1``."""
-        x = np.asarray(guess, float).copy()
-        H = np.eye(3)
-        for lev in reversed(self.levels):
-            for _ in range(self.cfg.iterations):
-                c, s = np.cos(x[2]), np.sin(x[2])
-                wp = pts @ np.array([[c, s], [-s, c]]) + x[:2]
-                val, g = lev.value_grad(wp)
-                dS = np.column_stack(
-                    [-s * pts[:, 0] - c * pts[:, 1], c * pts[:, 0] - s * pts[:, 1]]
-                )
-                J = np.column_stack([g[:, 0], g[:, 1], g[:, 0] * dS[:, 0] + g[:, 1] * dS[:, 1]])
-                r = 1.0 - val
-                H = J.T @ J + 1e-6 * np.eye(3)
-                step = np.linalg.solve(H, J.T @ r)
-                x = x + step
-                x[2] = float(_wrap(x[2]))
-                if np.linalg.norm(step[:2]) < 1e-5 and abs(step[2]) < 1e-5:
-                    break
-        return x, np.linalg.inv(H)
+        """The fitted pose and its covariance (:meth:`_covariance`) from ``guess``."""
+        f = self.fit(guess, pts)
+        return f.pose, self._covariance(f)
+
+    def _covariance(self, f: Fit) -> Array:
+        """``H^-1`` as published (occupancy field: dimensionless residuals); on the distance
+        field ``s^2 H^-1``, ``s^2`` the weighted residual variance (m^2)."""
+        try:
+            Hi = np.linalg.inv(f.H)
+        except np.linalg.LinAlgError:
+            return np.full((3, 3), np.nan)
+        return Hi if self.cfg.field == "occupancy" else max(f.s2, 1e-8) * Hi
 
     def score(self, pose: Array, pts: Array) -> float:
-        """Mean finest-level map value (0..1) at the endpoints ``pts`` (k, 2) (base frame)
+        """The score (0..1, ``hector_match``) of the endpoints ``pts`` (k, 2) (base frame)
         moved by ``pose``: near 1 when the scan lies on the walls."""
-        c, s = np.cos(pose[2]), np.sin(pose[2])
-        val, _ = self.levels[0].value_grad(pts @ np.array([[c, s], [-s, c]]) + pose[:2])
-        return float(np.mean(val)) if val.size else 0.0
+        return self.field.score(move(np.asarray(pose, float), pts))
+
+    def _judge(self, guess: Array, pose: Array, cov: Array) -> str:
+        """Why the match ``pose`` (from the prediction ``guess``) is refused; '' if not."""
+        c = self.cfg
+        if not (np.all(np.isfinite(pose)) and np.all(np.isfinite(cov))):
+            return "scan match diverged (NaN)"
+        if self.last_score < c.min_score:
+            return f"match score {self.last_score:.3f} < min_score {c.min_score}"
+        jump = float(np.hypot(*(pose[:2] - guess[:2])))
+        if jump > c.max_jump:
+            return f"match moved {jump:.3f} m from odometry (max_jump {c.max_jump})"
+        return ""
 
     def update(self, odom_pose: Array, scan: LaserScan, force: bool = False) -> PoseEstimate:
         odom_pose = finite_pose(odom_pose, "odometry pose")
         guess = self.pose_at(odom_pose)
         pts = self._endpoints_base(check_scan(scan))
-        ok, reason = True, ""
         if len(pts) >= 10:
-            pose, cov = self.match(guess, pts)
-            self.last_score = self.score(pose, pts)
-            c = self.cfg
-            jump = float(np.hypot(*(pose[:2] - guess[:2])))
-            if not (np.all(np.isfinite(pose)) and np.all(np.isfinite(cov))):
-                ok, reason = False, "scan match diverged (NaN)"
-            elif self.last_score < c.min_score:
-                ok, reason = False, f"match score {self.last_score:.3f} < min_score {c.min_score}"
-            elif jump > c.max_jump:
-                ok, reason = (
-                    False,
-                    f"match moved {jump:.3f} m from odometry (max_jump {c.max_jump})",
-                )
-            if ok:
-                self._pose, self._cov = pose, cov
-            else:
-                self.failures += 1
-                self._pose = guess
+            self.last_fit = f = self.fit(guess, pts)
+            pose, cov = f.pose, self._covariance(f)
+            self.last_score = f.score
+            reason = self._judge(guess, pose, cov)
         else:
-            self.last_score = float("nan")
-            ok, reason = False, f"{len(pts)} valid beams (< 10): no match"
+            self.last_fit, self.last_score = None, float("nan")
+            reason = f"{len(pts)} valid beams (< 10): no match"
+        if reason:
+            self.refusals += 1
             self._pose = guess
+        else:
+            self._pose, self._cov = pose, cov
+        self.last_refusal = reason
         self._odom = odom_pose.copy()
-        return PoseEstimate(self._pose.copy(), self._cov, 0, True, self.name, ok, reason)
+        return PoseEstimate(self._pose.copy(), self._cov, 0, True, self.name, not reason, reason)
 
     def estimate(self) -> PoseEstimate:
         if self._pose is None:
