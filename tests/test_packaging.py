@@ -46,7 +46,7 @@ def wheel(tmp_path_factory) -> Path:
 def test_wheel_carries_the_licence_and_the_data(wheel: Path) -> None:
     names = zipfile.ZipFile(wheel).namelist()
     assert any(n.endswith("licenses/LICENSE") for n in names)
-    assert "mmpa/sim/worlds/default.yaml" in names
+    assert "mmpa/backends/twin/worlds/default.yaml" in names
     assert "mmpa/py.typed" in names
     assert not any(n.startswith("tests/") for n in names)
 

@@ -35,7 +35,7 @@ def ipe_runs(tmp_path_factory):
 
 
 def test_every_trial_records_its_own_bag_and_the_rows_are_unchanged(ipe_runs) -> None:
-    from mmpa.harness.twin_site import trial_bag_name
+    from mmpa.harness.recording import trial_bag_name
     from mmpa.harness.twin_trials import TIMING_COLUMNS
 
     rec, plain = ipe_runs["rec"], ipe_runs["plain"]
