@@ -127,8 +127,8 @@ def test_a_carmen_log_round_trips_through_a_bag(room_log, room_bag) -> None:
 
 
 def test_stamps_that_do_not_increase_are_moved_and_counted() -> None:
-    t, moved = increasing_stamps(np.array([5.0, 5.0, 4.9, 9.0, 9.5]), 1.0)
-    np.testing.assert_allclose(t, [5.0, 6.0, 7.0, 9.0, 10.0])
+    t, moved = increasing_stamps(np.array([5.0, 5.0, 4.9, 9.0, 9.2, 9.1]), 1.0)
+    np.testing.assert_allclose(t, [5.0, 6.0, 7.0, 9.0, 9.2, 10.2])  # 9.2 increases: kept
     assert moved == 3
 
 

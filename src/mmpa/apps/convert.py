@@ -26,12 +26,13 @@ otherwise (then ``base_link = pose * inv(laser_pose)``, the scans unchanged in t
 
 Stamps: a bag's readers match odometry to scans by time, so the stamps must increase. The
 CSAIL log writes its times with 6 significant digits (every scan at 1.13486e9 s) and the
-Intel log has 4 stamps that step back 0.1 s; such a stamp is moved to the previous one plus
-``min_dt`` and counted (``stamps_moved``, with a warning). ``min_dt`` is 1 s: the health
-monitor judges an odometry increment against the time it took (2 m/s, 4 rad/s at most,
+Intel log has 4 stamps that step back (by up to 0.86 s); such a stamp (at or before the one
+before it) is moved to the previous one plus ``min_dt`` and counted (``stamps_moved``, with
+a warning); stamps that increase are kept. ``min_dt`` is 1 s: the health monitor judges an
+odometry increment against the time it took (2 m/s, 4 rad/s at most,
 :mod:`mmpa.localization.health`), and these logs' scans are up to ~1 m / 20 degrees apart
 (with 1 ms, every CSAIL increment was refused as a jump). The benchmark's CARMEN loader uses
-the same stamps (:func:`increasing_stamps`), so a log and its bag give the same figures.
+the same stamps (:func:`increasing_stamps`), so a log and its bag are judged alike.
 """
 
 from __future__ import annotations
@@ -58,12 +59,13 @@ _log = logging.getLogger(__name__)
 
 
 def increasing_stamps(stamps: Array, min_dt: float = 1.0) -> tuple[Array, int]:
-    """``stamps`` (s) made strictly increasing: each one at least ``min_dt`` after the one
-    before (a stamp that is not is moved there); returns the stamps and how many moved."""
+    """``stamps`` (s) made strictly increasing: a stamp at or before the one before it is
+    moved to that one plus ``min_dt``; stamps that increase are kept. Returns the stamps and
+    how many moved."""
     out = np.asarray(stamps, float).copy()
     moved = 0
     for k in range(1, len(out)):
-        if out[k] < out[k - 1] + min_dt:
+        if out[k] <= out[k - 1]:
             out[k] = out[k - 1] + min_dt
             moved += 1
     return out, moved
