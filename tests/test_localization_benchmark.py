@@ -224,7 +224,9 @@ def test_the_bag_loader_finds_the_mount_and_refuses_without_truth(room_bag, tmp_
     ds = open_dataset(room_bag)
     assert ds.format == "bag" and ds.laser_pose_source == "tf_static"
     run = run_pipeline(ds, BenchmarkConfig(max_scans=3, start=2))
-    assert len(run.t) == 3
+    assert len(run.t) == 3 and run.refused is None  # AMCL has no refusals of its own
+    hector = run_pipeline(ds, BenchmarkConfig(method="hector", max_scans=3))
+    assert hector.refused is not None and len(hector.refused) == 3
     np.testing.assert_allclose(run.truth[0], ds[2].truth)
     with pytest.raises(InvalidInputError, match="start 99"):
         run_pipeline(ds, BenchmarkConfig(start=99))

@@ -13,7 +13,8 @@ heading error, the share within 5 and 10 cm, divergence: the first scan after th
 over 0.5 m, time per update) and writes the folder:
 
 - ``results.json``: the data set (format, scans, map, the lidar mount and its source), the
-  method, the figures, the ``ok=False`` count and first reasons;
+  method, the figures, the ``ok=False`` count and first reasons, the localizer's own
+  refusals (Hector's refused matches; null for the others);
 - ``estimate.csv``: per scan ``t``, estimate, reference, odometry, errors, ``ok``,
   ``update_ms``;
 - ``trajectory.png``: the map with the reference and the estimate, and the error per scan;
@@ -78,6 +79,8 @@ class BenchmarkRun:
     ok: Array
     reason: list[str]
     update_s: Array
+    refused: Array | None = None  # per scan: the localizer refused its match (Hector); None
+    # for localizers without refusals of their own
 
 
 def _initial_pose(ds: LocalizationDataset, cfg: BenchmarkConfig) -> Array:
@@ -93,11 +96,15 @@ def run_pipeline(ds: LocalizationDataset, cfg: BenchmarkConfig) -> BenchmarkRun:
     pose0 = None if cfg.global_localization else _initial_pose(ds, cfg)
     start_localizer(loc, cfg.method, pose0, initial_covariance(cfg), cfg.global_localization)
     rows: list[tuple[float, Array, Array, Array, bool, str, float]] = []
+    counts = hasattr(loc, "refusals")  # Hector counts the matches it refused
+    refused: list[bool] = []
     for i in range(cfg.start, stop):
         f = ds[i]
+        before = int(getattr(loc, "refusals", 0))
         t0 = time.perf_counter()
         est = loc.update(f.odom, f.scan, force=cfg.force)
         dt = time.perf_counter() - t0
+        refused.append(int(getattr(loc, "refusals", 0)) > before)
         rows.append((f.t, loc.pose_at(f.odom), f.truth, f.odom, bool(est.ok), est.reason, dt))
     return BenchmarkRun(
         t=np.array([r[0] for r in rows]),
@@ -107,6 +114,7 @@ def run_pipeline(ds: LocalizationDataset, cfg: BenchmarkConfig) -> BenchmarkRun:
         ok=np.array([r[4] for r in rows]),
         reason=[r[5] for r in rows],
         update_s=np.array([r[6] for r in rows]),
+        refused=np.array(refused) if counts else None,
     )
 
 
@@ -183,6 +191,7 @@ def run_benchmark(ds: LocalizationDataset, cfg: BenchmarkConfig, out: str | Path
         "first_scan": cfg.start,
         **stats,
         "not_ok": int(np.sum(~run.ok)),
+        "refusals": None if run.refused is None else int(np.sum(run.refused)),
         "not_ok_reasons": list(dict.fromkeys(r for r in run.reason if r))[:5],
         "compute_s": round(float(np.sum(run.update_s)), 3),
     }
