@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -70,7 +71,8 @@ def track(log: CarmenLog, grid: OccupancyGrid, cfg: HectorConfig) -> dict[str, A
     out: dict[str, Any] = _stats(np.array(err) * 1e3)
     out["over_0.5m"] = int(np.sum(np.array(err) > 0.5))
     out["refusals"] = int(loc.refusals)
-    out["refusal_reasons"] = list(dict.fromkeys(r.split(" <")[0] for r in reasons))[:3]
+    kinds = (re.sub(r"-?\d+(\.\d+)?", "#", r) for r in reasons)  # one per kind of reason
+    out["refusal_reasons"] = list(dict.fromkeys(kinds))[:3]
     out["monitor_not_ok"] = int(not_ok)
     out["ms_per_update"] = round(dt * 1e3, 2)
     return out
