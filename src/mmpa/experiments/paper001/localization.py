@@ -41,6 +41,7 @@ from mmpa.harness.recording import recording_folder, trial_recorder
 from mmpa.harness.runner import Context, Outcome, markdown_table, run_trials, stats
 from mmpa.harness.twin_localization import errors_follow_seed, twin_localizer
 from mmpa.localization.amcl import AMCLConfig
+from mmpa.localization.hector import HectorConfig
 from mmpa.localization.localizer import METHODS
 from mmpa.missions.navigate import NavigateConfig, navigate
 from mmpa.navigation.mount_calibration import MountCalibrationConfig, calibrate_lidar_mount
@@ -105,6 +106,10 @@ class Config(TwinLocalization):
     kidnap_site: str = "2"
     kidnap_duration: float = Field(30.0, gt=0)
     kidnap_amcl: AMCLConfig = AMCLConfig(recovery_alpha_slow=0.001, recovery_alpha_fast=0.1)
+    # the paper's baseline "Hector-SLAM [35]" as published (Kohlbrecher et al. 2011); mmpa's
+    # own Hector (distance field, damped steps, a search; docs/localization.md): `hector: {}`
+    # in a --config file (HectorConfig's defaults)
+    hector: HectorConfig = Field(default_factory=HectorConfig.paper)
 
 
 def twin_mount_calibration(
@@ -188,7 +193,7 @@ def _trial(
         world.reset(pose2d=start)
         grid = twin_map(world, cfg.resolution)
         rng_k = np.random.default_rng([cfg.seed, k, 7])
-        loc = twin_localizer(world, method, rng_k, grid=grid, mount=mount)
+        loc = twin_localizer(world, method, rng_k, grid=grid, mount=mount, hector=cfg.hector)
         robot: Any = world
         if record is not None:  # the same trial, observed (mmpa.backends.bag.Recorder)
             label = {"method": method}
@@ -238,7 +243,7 @@ def _kidnap(cfg: Config, k: int, method: str, mount: np.ndarray | None = None) -
         grid = twin_map(w, cfg.resolution)
         amcl = cfg.kidnap_amcl
         rng_k = np.random.default_rng([cfg.seed, k, 9])
-        loc = twin_localizer(w, method, rng_k, grid=grid, mount=mount, amcl=amcl)
+        loc = twin_localizer(w, method, rng_k, grid=grid, mount=mount, amcl=amcl, hector=cfg.hector)
         guess_rng = np.random.default_rng([cfg.seed, k, 10])
         loc.initialize(rough_pose(w.truth.base_pose2d(), guess_rng, *initial_sigmas(cfg)))
         dt = 1.0 / cfg.navigate.scan_rate
