@@ -343,3 +343,20 @@ def test_benchmark_smoke_on_a_slice_of_the_intel_log(tmp_path) -> None:
     res = run_benchmark(ds, cfg, tmp_path)
     assert res["scans"] == 40 and res["scans_in_dataset"] == 910
     assert res["error_median_mm"] < 250 and not res["diverged"], res
+
+
+def test_global_and_bad_settings_on_the_cli(room_bag, tmp_path) -> None:
+    """``mmpa localize --global`` starts AMCL without a pose and says so; hector refuses it
+    naming the option; ``mmpa navigate --set`` is checked before the twin is built."""
+    from mmpa.cli.main import app
+
+    base = ["localize", "--bag", str(room_bag), "--max-scans", "3"]
+    res = CliRunner().invoke(app, [*base, "--method", "amcl", "--global", "--out", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["start"] == "global"
+    assert yaml.safe_load((tmp_path / "config.yaml").read_text())["global_localization"] is True
+    res = CliRunner().invoke(app, [*base, "--method", "hector", "--global", "--out", str(tmp_path)])
+    assert res.exit_code == 2 and "--global" in res.output
+    res = CliRunner().invoke(app, ["navigate", "--to", "1", "--set", "hector.levels=0"])
+    assert res.exit_code == 2 and "hector.levels" in res.output
