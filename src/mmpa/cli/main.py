@@ -317,6 +317,7 @@ from mmpa.cli import datasets as _datasets  # noqa: E402  (registers convert, be
 from mmpa.cli import navigation as _navigation  # noqa: E402  (registers navigate, map)
 from mmpa.cli import register as _register  # noqa: E402  (registers register)
 from mmpa.cli import robot as _robot  # noqa: E402  (registers robot)
+from mmpa.cli import ros2 as _ros2  # noqa: E402  (registers the ros2 group)
 from mmpa.cli import sweep as _sweep  # noqa: E402  (registers sweep)
 
 _navigation.register(app)
@@ -326,6 +327,7 @@ _calibrate.register(app)
 _register.register(app)
 _sweep.register(app)
 _datasets.register(app)
+_ros2.register(app)
 
 
 def main() -> None:
