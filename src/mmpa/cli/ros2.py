@@ -3,9 +3,11 @@ passes what follows it (``--ros-args -p name:=value --params-file FILE ...``) to
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import typer
 
-from mmpa.cli.common import fail
+from mmpa.cli.common import ProfileOpt, console, fail
 from mmpa.core.errors import MMPAError
 
 ros2_app = typer.Typer(help="ROS 2 nodes (Jazzy; the extra ros2).", no_args_is_help=True)
@@ -32,3 +34,51 @@ def localization(ctx: typer.Context) -> None:
     except MMPAError as e:
         fail(e)
     raise typer.Exit(code)
+
+
+@ros2_app.command("twin", context_settings=ROS_ARGS)
+def twin_cmd(
+    ctx: typer.Context,
+    site: Annotated[str, typer.Option("--site", help="Start site of the scene.")] = "0",
+    profile: ProfileOpt = None,
+    seed: Annotated[int, typer.Option(help="Robot instance / noise seed.", min=0)] = 0,
+    camera: Annotated[
+        bool, typer.Option("--camera/--no-camera", help="Publish the wrist RGB-D camera.")
+    ] = False,
+    camera_rate: Annotated[
+        float, typer.Option(help="Camera frames per sim second.", min=0.1, max=60.0)
+    ] = 15.0,
+    speed: Annotated[
+        float,
+        typer.Option(help="Sim seconds per wall second (0: as fast as it steps).", min=0.0),
+    ] = 1.0,
+    rate: Annotated[
+        float, typer.Option(help="Ticks per sim second (/clock, /odom, /tf).", min=1.0)
+    ] = 50.0,
+    duration: Annotated[
+        float | None, typer.Option(help="Stop after this many sim seconds (default: Ctrl-C).")
+    ] = None,
+) -> None:
+    """The digital twin as a ROS 2 robot: /clock, /scan, /odom, /tf, /map, the camera; takes
+    /cmd_vel and the arm's trajectories (docs/ros2.md; ROS arguments after --ros-args)."""
+    try:
+        from mmpa.apps.ros2_twin import run_twin_node, twin_node_config
+    except ImportError as e:
+        fail(MMPAError(f"the ros2 extra is missing ({e}); make setup installs it"))
+    try:
+        cfg = twin_node_config(
+            site,
+            profile,
+            seed,
+            camera=camera,
+            camera_rate_hz=camera_rate,
+            speed=speed,
+            rate_hz=rate,
+        )
+        stats = run_twin_node(cfg, ["mmpa", *ctx.args], duration)
+    except MMPAError as e:
+        fail(e)
+    console.print(
+        f"twin: {stats.sim_s:.1f} sim s in {stats.wall_s:.1f} s "
+        f"(real-time factor {stats.real_time_factor:.2f}), {len(stats.refused)} refused"
+    )
