@@ -1,0 +1,88 @@
+"""Real-time factor of the twin as a ROS 2 robot (``mmpa ros2 twin``; docs/ros2.md).
+
+Runs :class:`mmpa.apps.ros2_twin.TwinNode` in this process unpaced (``speed`` 0: it steps as
+fast as it can, publishing every topic as in real time) for ``--seconds`` of sim time, once
+without the camera and once with it at ``--camera-rate`` Hz, and reports sim s / wall s (the
+real-time factor it could sustain; >= 1 keeps up with the wall clock) and the messages
+published. A subscriber process (``--subscribe``) takes the scan, /odom, /tf and the images
+over DDS as a localization node would (so DDS serializes and sends them).
+
+    MUJOCO_GL=osmesa PYOPENGL_PLATFORM=osmesa OMP_NUM_THREADS=1 \\
+        .venv/bin/python benchmarks/bench_ros2_twin.py [--seconds 10] [--profile realistic]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+
+SUBSCRIBER = r"""
+import sys, time
+from mmpa.backends.ros2 import graph, messages
+topics = [("/scan", "sensor_msgs/msg/LaserScan", graph.SENSOR_DATA),
+          ("/odom", "nav_msgs/msg/Odometry", graph.RELIABLE),
+          ("/tf", "tf2_msgs/msg/TFMessage", graph.RELIABLE),
+          ("/camera/color/image_raw", "sensor_msgs/msg/Image", graph.SENSOR_DATA),
+          ("/camera/aligned_depth_to_color/image_raw", "sensor_msgs/msg/Image", graph.SENSOR_DATA)]
+n = {t: 0 for t, _, _ in topics}
+with graph.Session("bench_twin_sub") as s:
+    for t, name, qos in topics:
+        s.node.create_subscription(messages.message_class(name), t,
+                                   lambda m, t=t: n.__setitem__(t, n[t] + 1), qos)
+    end = time.monotonic() + float(sys.argv[1])
+    while time.monotonic() < end:
+        s.spin_once(0.05)
+print(n, flush=True)
+"""
+
+
+def run(seconds: float, profile: str, camera: bool, rate: float, subscribe: bool) -> dict:
+    from mmpa.apps.ros2_twin import TwinNode, twin_node_config
+
+    cfg = twin_node_config("0", profile, 0, camera=camera, camera_rate_hz=rate, speed=0.0)
+    sub = None
+    if subscribe:
+        sub = subprocess.Popen(
+            [sys.executable, "-c", SUBSCRIBER, "600"], stdout=subprocess.PIPE, text=True
+        )
+    with TwinNode(cfg) as node:
+        if sub is not None:
+            time.sleep(3.0)  # discovery
+        if camera:
+            node.world.camera.capture()  # the renderer's first frame (context creation)
+        stats = node.run(seconds)
+    if sub is not None:
+        sub.terminate()
+        sub.wait()
+    return {
+        "camera": f"{rate:g} Hz" if camera else "off",
+        "sim_s": round(stats.sim_s, 2),
+        "wall_s": round(stats.wall_s, 2),
+        "rtf": round(stats.real_time_factor, 2),
+        "published": stats.published,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=10.0, help="sim seconds per run")
+    ap.add_argument("--profile", default="realistic")
+    ap.add_argument("--camera-rate", type=float, default=15.0)
+    ap.add_argument("--subscribe", action="store_true", help="a subscriber process takes them")
+    a = ap.parse_args()
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    os.environ.setdefault("ROS_DOMAIN_ID", "91")
+    for camera in (False, True):
+        r = run(a.seconds, a.profile, camera, a.camera_rate, a.subscribe)
+        print(
+            f"camera {r['camera']:>6}: {r['sim_s']} sim s in {r['wall_s']} s -> "
+            f"real-time factor {r['rtf']}  ({r['published']})",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()
