@@ -1,0 +1,126 @@
+"""The messages of a localization node, as Nav2's ``amcl`` publishes and reads them.
+
+- :func:`from_occupancy_grid`: ``nav_msgs/OccupancyGrid`` (``/map``, row 0 at the bottom,
+  -1 unknown, 0..100 occupied percent) -> :class:`~mmpa.maps.occupancy.OccupancyGrid`, with
+  the surveyed reflectors (m, ``map``) the message cannot carry;
+- :func:`pose_with_covariance`: ``geometry_msgs/PoseWithCovarianceStamped`` (``/amcl_pose``)
+  of a planar pose ``[x, y, theta]`` and its (3, 3) covariance (rows x, y, yaw of ROS's 6x6);
+- :func:`particle_cloud`: ``nav2_msgs/ParticleCloud`` (``/particle_cloud``): planar poses
+  (N, 3) with their weights;
+- :func:`diagnostics`: ``diagnostic_msgs/DiagnosticArray`` with one status (OK / ERROR and
+  the reason).
+
+Built through :func:`mmpa.backends.ros2.messages.to_rclpy` on the bag backend's builders
+where one exists (same bytes as a bag holds), else filled directly.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from mmpa.backends.bag import messages as bag
+from mmpa.backends.ros2.messages import message_class, to_rclpy
+from mmpa.core.errors import InvalidInputError
+from mmpa.core.geometry import Array
+from mmpa.maps.occupancy import OccupancyGrid
+
+__all__ = [
+    "diagnostics",
+    "from_occupancy_grid",
+    "particle_cloud",
+    "planar",
+    "pose_with_covariance",
+    "stamp_of",
+]
+
+
+def stamp_of(header: Any) -> float:
+    """A header's stamp in seconds."""
+    return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
+
+
+def planar(Tm: Array) -> Array:
+    """``[x, y, yaw]`` of a 4x4 pose (the yaw of its x axis in the xy plane)."""
+    Tm = np.asarray(Tm, float)
+    return np.array([Tm[0, 3], Tm[1, 3], np.arctan2(Tm[1, 0], Tm[0, 0])])
+
+
+def from_occupancy_grid(
+    msg: Any, reflectors: Array | None = None, reflector_radius: float = 0.0
+) -> OccupancyGrid:
+    """``nav_msgs/OccupancyGrid`` -> :class:`OccupancyGrid` (InvalidInputError on a size
+    mismatch, a rotated origin or cells outside -1..100)."""
+    w, h = int(msg.info.width), int(msg.info.height)
+    data = np.asarray(msg.data, dtype=np.int8)
+    if data.size != w * h or w == 0 or h == 0:
+        raise InvalidInputError(f"/map holds {data.size} cells for {w} x {h}")
+    o = msg.info.origin
+    yaw = planar(_T(o))
+    return OccupancyGrid(
+        data=data.reshape(h, w),
+        resolution=float(msg.info.resolution),
+        origin=(float(o.position.x), float(o.position.y), float(yaw[2])),
+        reflectors=np.zeros((0, 2)) if reflectors is None else reflectors,
+        reflector_radius=reflector_radius,
+    )
+
+
+def _T(pose: Any) -> Array:
+    """4x4 of a ``geometry_msgs/Pose`` (rclpy)."""
+    q = pose.orientation
+    x, y, z, w = q.x, q.y, q.z, q.w
+    R = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+    Tm = np.eye(4)
+    Tm[:3, :3] = R
+    Tm[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
+    return Tm
+
+
+def pose_with_covariance(stamp: float, frame_id: str, pose: Array, cov: Array | None) -> Any:
+    """``geometry_msgs/PoseWithCovarianceStamped`` (rclpy) of a planar pose and covariance."""
+    return to_rclpy(bag.pose_cov_stamped(stamp, frame_id, pose, cov))
+
+
+def from_pose_with_covariance(msg: Any) -> tuple[float, Array, Array]:
+    """``PoseWithCovarianceStamped`` (rclpy) -> ``(stamp s, [x, y, yaw], (3, 3) cov)``."""
+    cov = np.asarray(msg.pose.covariance, float).reshape(6, 6)[np.ix_([0, 1, 5], [0, 1, 5])]
+    return stamp_of(msg.header), planar(_T(msg.pose.pose)), cov
+
+
+def particle_cloud(stamp: float, frame_id: str, particles: Array, weights: Array) -> Any:
+    """``nav2_msgs/ParticleCloud`` of planar particles (N, 3) and their weights (N,)."""
+    cloud = message_class("nav2_msgs/msg/ParticleCloud")()
+    Particle = message_class("nav2_msgs/msg/Particle")
+    ns = bag.stamp_ns(stamp)
+    cloud.header.stamp.sec, cloud.header.stamp.nanosec = divmod(ns, 1_000_000_000)
+    cloud.header.frame_id = frame_id
+    P = np.asarray(particles, float).reshape(-1, 3)
+    half = 0.5 * P[:, 2]
+    out = []
+    for (x, y, _), qz, qw, wt in zip(
+        P.tolist(),
+        np.sin(half).tolist(),
+        np.cos(half).tolist(),
+        np.asarray(weights).tolist(),
+        strict=True,
+    ):
+        p = Particle()
+        p.pose.position.x, p.pose.position.y = x, y
+        p.pose.orientation.z, p.pose.orientation.w = qz, qw
+        p.weight = float(wt)
+        out.append(p)
+    cloud.particles = out
+    return cloud
+
+
+def diagnostics(stamp: float, name: str, ok: bool, message: str, values: dict[str, Any]) -> Any:
+    """``diagnostic_msgs/DiagnosticArray`` (rclpy) with one status: OK (0) or ERROR (2)."""
+    return to_rclpy(bag.diagnostics(stamp, name, ok, message, values))
