@@ -1,0 +1,117 @@
+"""Scan-to-pose latency of ``mmpa ros2 localization`` at 1440 beams against the library's own
+update time on the same sequence.
+
+    .venv/bin/python benchmarks/bench_ros2_localization.py [--scans 40] [--period 0.2]
+
+The sequence and settings are the DDS test's (tests/test_ros2_localization.py: the synthetic
+room, the params file, the beam model at 180 of the beams) with 1440-beam scans. The node runs
+as ``mmpa ros2 localization`` in its own process; this process publishes each scan and
+stamps the moment the ``/amcl_pose`` of that scan's stamp arrives (CLOCK_MONOTONIC is one
+clock for every process of the machine). Then the library alone (``build_localizer`` and
+``update`` on the same scans and odometry, same seed) times ``update``. Prints the medians
+and p95 of both and their difference (the node's overhead: DDS both ways, the scan's and
+tf's conversion, the messages it builds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+import test_ros2_localization as seq
+from mmpa.backends.ros2 import graph, messages
+from mmpa.core.geometry import se2_to_T
+from mmpa.localization.config import AMCLConfig
+from mmpa.localization.settings import (
+    LocalizationConfig,
+    build_localizer,
+    start_localizer,
+)
+
+
+def _node_latencies(n: int, period: float, tmp: Path) -> list[float]:
+    node = seq._node(tmp / "amcl.yaml")
+    sent: dict[float, float] = {}
+    lat: list[float] = []
+    try:
+        with graph.Session("mmpa_bench_player") as s:
+            p = seq.Player(s)
+            assert p.ready(), "the node did not come up"
+            grid = seq._grid()
+            p.map.publish(messages.to_rclpy(seq.bag.occupancy_grid(grid, seq.T0)))
+            mount = se2_to_T(*seq.MOUNT)
+            p.static.publish(messages.tf_message(seq.T0, [("base_link", "lidar_mount", mount)]))
+            s.spin_until(lambda: False, 1.0)
+            rng = np.random.default_rng(3)
+            for k in range(n):
+                t = seq.T0 + seq.DT * k
+                odom = se2_to_T(*seq._odom(k))
+                p.tf.publish(messages.tf_message(t, [("odom", "base_link", odom)]))
+                msg = messages.laser_scan(seq._scan(grid, k, rng))
+                sent[round(t, 6)] = time.monotonic()
+                p.scan.publish(msg)
+                got = len(p.poses)
+                s.spin_until(lambda got=got: len(p.poses) > got, period)
+                if len(p.poses) > got and round(p.poses[-1][0], 6) in sent:
+                    lat.append(time.monotonic() - sent[round(p.poses[-1][0], 6)])
+                s.spin_until(
+                    lambda: False, max(0.0, period - (time.monotonic() - sent[round(t, 6)]))
+                )
+    finally:
+        seq._stop(node)
+    return lat
+
+
+def _library_times(n: int) -> list[float]:
+    import yaml
+
+    params = yaml.safe_load(seq.PARAMS)["amcl"]["ros__parameters"]
+    cfg = LocalizationConfig(method="amcl", amcl=AMCLConfig(**params))
+    grid = seq._grid()
+    loc = build_localizer(cfg, grid, seq.MOUNT, np.random.default_rng(1))
+    start_localizer(loc, "amcl", seq._truth(0) + seq.START_ERROR)
+    rng = np.random.default_rng(3)
+    out = []
+    for k in range(n):
+        scan = seq._scan(grid, k, rng)
+        t0 = time.perf_counter()
+        est = loc.update(seq._odom(k), scan)
+        if est.updated:
+            out.append(time.perf_counter() - t0)
+    return out
+
+
+def _row(name: str, xs: list[float]) -> str:
+    a = 1e3 * np.asarray(xs)
+    med, p95 = np.median(a), np.percentile(a, 95)
+    return f"{name:34s} n={a.size:3d}  median {med:7.2f} ms  p95 {p95:7.2f} ms"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scans", type=int, default=40)
+    ap.add_argument("--period", type=float, default=0.2, help="s between scans (wall)")
+    a = ap.parse_args()
+    seq.N_BEAMS = 1440
+    os.environ.setdefault("ROS_DOMAIN_ID", "61")
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    with tempfile.TemporaryDirectory() as tmp:
+        os.environ.setdefault("ROS_LOG_DIR", tmp)
+        lat = _node_latencies(a.scans, a.period, Path(tmp))
+    lib = _library_times(a.scans)
+    print(f"1440 beams, {a.scans} scans, one every {a.period} s")
+    print(_row("node: scan published -> /amcl_pose", lat))
+    print(_row("library: update()", lib))
+    print(f"node overhead (medians): {1e3 * (np.median(lat) - np.median(lib)):.2f} ms")
+
+
+if __name__ == "__main__":
+    main()
