@@ -257,3 +257,57 @@ def test_node_waits_for_the_lidar_mount_and_refuses_a_bad_scan(
     assert p.poses == [] and p.map_odom == []
     assert "waiting for the transform base_link -> lidar_mount" in log, log
     assert "scan refused" in log and "angle_increment must not be 0" in log, log
+
+
+def test_tf_buffer_composes_by_frame_names_and_interpolates() -> None:
+    """base -> laser static, odom -> base at two stamps, map -> odom: the closed forms."""
+    from mmpa.backends.ros2.tf_buffer import TfBuffer
+
+    b = TfBuffer()
+    b.set(0.0, "base_link", "lidar_mount", se2_to_T(*MOUNT), static=True)
+    b.set(1.0, "odom", "base_link", se2_to_T(1.0, 0.0, 0.0))
+    b.set(2.0, "odom", "base_link", se2_to_T(2.0, 1.0, 0.4))
+    b.set(1.5, "map", "odom", se2_to_T(*MAP_ODOM))
+    mid = localization_msgs.planar(b.lookup("odom", "base_link", 1.25))
+    np.testing.assert_allclose(mid, [1.25, 0.25, 0.1], atol=1e-12)  # linear x, y; slerp yaw
+    got = localization_msgs.planar(b.lookup("map", "lidar_mount", 1.25, tolerance=0.5))
+    want = se2_compose(se2_compose(MAP_ODOM, [1.25, 0.25, 0.1]), MOUNT)
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    inv_ = localization_msgs.planar(b.lookup("lidar_mount", "odom", 2.0))
+    np.testing.assert_allclose(inv_, se2_inv(se2_compose([2.0, 1.0, 0.4], MOUNT)), atol=1e-12)
+    assert b.lookup("odom", "base_link", 5.0, tolerance=0.5) is None
+    assert "1.000..2.000" in b.why()
+    assert b.lookup("base_link", "camera") is None and "camera" in b.why()
+
+
+def test_params_map_onto_the_localization_config() -> None:
+    """Nav2 names -> AMCLConfig fields; the node's own -> NodeSettings; bad values refused."""
+    from mmpa.apps.ros2_localization import config_from_params
+    from mmpa.core.errors import ConfigError
+
+    cfg, node = config_from_params(
+        {
+            "alpha1": 0.07,
+            "laser_model_type": "beam",
+            "max_particles": 900,
+            "update_min_d": 0.1,
+            "base_frame_id": "base_link",
+            "set_initial_pose": True,
+            "initial_pose.x": 1.5,
+            "initial_pose.yaw": -0.5,
+            "method": "hector",
+        }
+    )
+    assert (cfg.amcl.alpha1, cfg.amcl.laser_model_type, cfg.amcl.max_particles) == (
+        0.07,
+        "beam",
+        900,
+    )
+    assert cfg.amcl.update_min_d == 0.1 and cfg.amcl.alpha2 == 0.2 and cfg.method == "hector"
+    assert node.base_frame_id == "base_link" and node.odom_frame_id == "odom"
+    np.testing.assert_array_equal(node.initial_pose, [1.5, 0.0, -0.5])
+    assert config_from_params({})[1].initial_pose is None
+    with pytest.raises(ConfigError, match="z_hit"):
+        config_from_params({"z_hit": -1.0})
+    with pytest.raises(ConfigError, match="method"):
+        config_from_params({"method": "nope"})

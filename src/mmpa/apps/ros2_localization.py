@@ -24,13 +24,14 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 from rcl_interfaces.msg import ParameterDescriptor
 from std_srvs.srv import Empty
 
 from mmpa.backends.bag.messages import from_odometry
 from mmpa.backends.ros2 import graph, localization_msgs, messages
 from mmpa.backends.ros2.tf_buffer import TfBuffer
-from mmpa.core.errors import MMPAError
+from mmpa.core.errors import ConfigError, MMPAError
 from mmpa.core.geometry import Array, se2_compose, se2_inv, se2_to_T
 from mmpa.localization.config import AMCLConfig
 from mmpa.localization.settings import LocalizationConfig, build_localizer, start_localizer
@@ -78,9 +79,13 @@ class NodeSettings:
 
 def config_from_params(params: dict[str, Any]) -> tuple[LocalizationConfig, NodeSettings]:
     """Parameter values by name -> the localizer's settings and the node's (pydantic checks
-    the AMCL ones: a ConfigError-like ValidationError names the field)."""
+    the AMCL ones: a ConfigError names the parameter)."""
     amcl = {k: params[k] for k in AMCLConfig.model_fields if k in params}
-    cfg = LocalizationConfig(method=params.get("method", "amcl"), amcl=AMCLConfig(**amcl))
+    try:
+        cfg = LocalizationConfig(method=params.get("method", "amcl"), amcl=AMCLConfig(**amcl))
+    except ValidationError as e:
+        bad = "; ".join(f"{'.'.join(map(str, x['loc']))}: {x['msg']}" for x in e.errors())
+        raise ConfigError(f"invalid parameters: {bad}") from None
     p = NODE_PARAMS | {k: v for k, v in params.items() if k in NODE_PARAMS}
     init = None
     if p["set_initial_pose"]:
