@@ -25,7 +25,6 @@ the reason when not ok). A localizer that refuses matches of its own (Hector: ``
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import time
@@ -42,7 +41,7 @@ from mmpa.backends.bag import messages as rm
 from mmpa.backends.bag.reader import BagLidar, BagOdometry, BagPlayback, BagTopics, read_messages
 from mmpa.backends.bag.writer import BagWriter
 from mmpa.core.config import save_config
-from mmpa.core.errors import ConfigError, InvalidInputError
+from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array, T_to_se2, inv, se2_to_T, wrap_angle
 from mmpa.localization.health import Health
 from mmpa.localization.settings import (
@@ -51,9 +50,8 @@ from mmpa.localization.settings import (
     initial_covariance,
     start_localizer,
 )
-from mmpa.maps.map_server import load_map
+from mmpa.maps.map_server import load_map, replace_reflectors
 from mmpa.maps.occupancy import OccupancyGrid
-from mmpa.maps.reflector_map import load_reflector_map
 
 if TYPE_CHECKING:  # pragma: no cover
     from mmpa.maps.occupancy import OccupancyGrid
@@ -375,15 +373,7 @@ def run_localize(
     else:
         grid = grid_from_bag(bag, cfg.topics)
     if reflectors is not None:
-        rm = load_reflector_map(reflectors)
-        if np.ptp(rm.radius) > 1e-9:
-            raise ConfigError(
-                f"{reflectors}: reflectors of different radii ({np.unique(rm.radius)} m); the "
-                "localizer takes one radius"
-            )
-        grid = dataclasses.replace(
-            grid, reflectors=rm.xy.copy(), reflector_radius=float(rm.radius[0])
-        )
+        grid = replace_reflectors(grid, reflectors)
     pb = BagPlayback.open(bag, cfg.topics)
     res = localize_bag(pb, grid, cfg)
     _write_csv(out / "estimate.csv", res)

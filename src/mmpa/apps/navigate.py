@@ -5,7 +5,6 @@ localization error (estimate vs truth) and the localizer's health over the drive
 
 from __future__ import annotations
 
-import dataclasses
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -18,16 +17,13 @@ from mmpa.backends.twin.operator import rough_initial_pose
 from mmpa.backends.twin.twin_maps import twin_map, twin_nav_map
 from mmpa.backends.twin.world import SimWorld
 from mmpa.core.config import load_config
-from mmpa.core.errors import ConfigError
 from mmpa.harness.twin_localization import twin_localizer
 from mmpa.localization.settings import LocalizationConfig, initial_covariance
-from mmpa.maps.map_server import save_map
-from mmpa.maps.occupancy import OccupancyGrid
-from mmpa.maps.reflector_map import load_reflector_map
+from mmpa.maps.map_server import replace_reflectors, save_map
 from mmpa.missions.navigate import NavigateConfig, NavigationResult, navigate
 from mmpa.navigation.planner import CostMap
 
-__all__ = ["export_twin_map", "health_summary", "navigate_twin", "twin_errors", "with_reflectors"]
+__all__ = ["export_twin_map", "health_summary", "navigate_twin", "twin_errors"]
 
 
 def twin_errors(seed: int, profile: str | None) -> ErrorModelConfig:
@@ -35,16 +31,6 @@ def twin_errors(seed: int, profile: str | None) -> ErrorModelConfig:
     ``ConfigError`` for an unknown profile)."""
     sets = [f"seed={seed}"] + ([] if profile is None else [f"profile={profile}"])
     return load_config(ErrorModelConfig, None, sets)
-
-
-def with_reflectors(grid: OccupancyGrid, path: Path | None) -> OccupancyGrid:
-    """``grid`` with the reflectors of the reflector map file ``path`` (None: as it is)."""
-    if path is None:
-        return grid
-    rm = load_reflector_map(path)
-    if np.ptp(rm.radius) > 1e-9:
-        raise ConfigError(f"{path}: reflectors of different radii; the localizer takes one")
-    return dataclasses.replace(grid, reflectors=rm.xy.copy(), reflector_radius=float(rm.radius[0]))
 
 
 def health_summary(trace: dict) -> dict:
@@ -99,7 +85,9 @@ def navigate_twin(
     bag = None
     with SimWorld(errors=errors, site=start) as world, ExitStack() as stack:
         goal = world.scene.site(to).pose2d
-        grid = with_reflectors(twin_map(world), reflector_map)
+        grid = twin_map(world)
+        if reflector_map is not None:
+            grid = replace_reflectors(grid, reflector_map)
         rng = np.random.default_rng(seed)
         loc = twin_localizer(
             world, method, rng, grid=grid, amcl=st.amcl, enhanced=st.enhanced, hector=st.hector

@@ -16,6 +16,7 @@ reflector map file (:mod:`mmpa.maps.reflector_map`), or the earlier form
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from numbers import Integral, Real
 from pathlib import Path
@@ -46,6 +47,7 @@ __all__ = [
     "read_map_image",
     "read_pgm",
     "read_pgm_maxval",
+    "replace_reflectors",
     "save_map",
     "write_pgm",
 ]
@@ -443,3 +445,16 @@ def save_map(grid: OccupancyGrid, yaml_path: str | Path, mode: MapMode = "trinar
         }
     yaml_path.write_text(yaml.safe_dump(meta, sort_keys=False, default_flow_style=None))
     return yaml_path
+
+
+def replace_reflectors(grid: OccupancyGrid, path: str | Path) -> OccupancyGrid:
+    """``grid`` with its reflectors replaced by those of the reflector map file ``path``
+    (:mod:`mmpa.maps.reflector_map`); they must share one radius (the localizers take one),
+    else :class:`ConfigError`."""
+    rm = load_reflector_map(path)
+    if np.ptp(rm.radius) > 1e-9:
+        raise ConfigError(
+            f"{path}: reflectors of different radii ({np.unique(rm.radius)} m); the "
+            "localizer takes one radius"
+        )
+    return dataclasses.replace(grid, reflectors=rm.xy.copy(), reflector_radius=float(rm.radius[0]))
