@@ -83,11 +83,8 @@ def mmpa_imports(path: Path) -> list[tuple[str, str]]:
         if isinstance(node, ast.Import):
             names = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            names = [node.module]
-            for a in node.names:
-                sub = SRC.parent / Path(*f"{node.module}.{a.name}".split("."))
-                if sub.with_suffix(".py").exists() or sub.is_dir():
-                    names.append(f"{node.module}.{a.name}")
+            subs = [f"{node.module}.{a.name}" for a in node.names]
+            names = [node.module] + [m for m in subs if _is_module(m)]
         at = where.get(id(node), "function")
         found += [(n, at) for n in names if n == "mmpa" or n.startswith("mmpa.")]
     return found
