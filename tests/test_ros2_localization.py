@@ -221,8 +221,9 @@ def _last_pose_and_its_tf(p: Player) -> tuple | None:
 
 def test_node_tracks_the_truth_and_publishes_map_to_odom(ros_env: None, tmp_path: Path) -> None:
     """/amcl_pose within 10 cm / 0.06 rad of the truth after 30 scans from a start 36 cm and
-    0.15 rad off (settings from a params file); map -> odom within the same of MAP_ODOM,
-    stamped scan + 1 s (transform_tolerance) and equal to the pose composed with the odometry."""
+    0.15 rad off (settings from a params file); map -> odom off MAP_ODOM by what the pose's
+    error implies, stamped scan + 1 s (transform_tolerance) and equal to the pose composed
+    with the odometry."""
     node = _node(tmp_path / "amcl.yaml")
     try:
         with graph.Session("mmpa_test_player") as s:
@@ -245,8 +246,13 @@ def test_node_tracks_the_truth_and_publishes_map_to_odom(ros_env: None, tmp_path
     # stamped scan + transform_tolerance
     assert match, ([ts for ts, _ in p.map_odom[-3:]], t)
     _, map_odom = match[-1]
+    # map -> odom = pose (-) odom: its error is the pose's, the heading error turning the odom
+    # offset t_o: |e_xy| <= |pose e_xy| + |pose e_yaw| |t_o| (the position part of the pose
+    # error alone does not bound it: 0.019 rad over the 4 m offset here is 8 cm)
     e = map_odom - MAP_ODOM
-    assert np.hypot(*e[:2]) < POS_TOL and abs(wrap_angle(e[2])) < YAW_TOL, e
+    t_o = float(np.hypot(*_odom(k)[:2]))
+    bound = np.hypot(*err[:2]) + abs(wrap_angle(err[2])) * t_o + 1e-6
+    assert np.hypot(*e[:2]) <= bound and abs(wrap_angle(e[2])) < YAW_TOL, (e, bound)
     # consistent: map -> odom (+) odom -> base (at the scan) == the published pose
     np.testing.assert_allclose(se2_compose(map_odom, _odom(k)), pose, atol=1e-6)
 
