@@ -16,6 +16,8 @@ from mmpa.robot.robot_file import (
     frame_names,
     load_robot,
     read_ur_calibration,
+    robot_backend,
+    robot_to_yaml,
     save_robot,
 )
 
@@ -107,6 +109,10 @@ def load_robot_text(tmp_path, text: str) -> RobotDescription:
         ("frames: {prefix: 3, bogus: x}\n", "frames"),
         ("- a list\n", "must be a YAML mapping"),
         ("a: &x [1]\nb: *x\n", "alias"),
+        ("backend: {kind: moon}\n", "backend.kind"),
+        ("backend: [twin]\n", "backend: must be a mapping"),
+        ("backend: {safety: {speed_scale: 1.5}}\n", "backend.safety.speed_scale"),
+        ("backend: {ros2: {topics: {scna: /scan}}}\n", "backend.ros2.topics.scna"),
     ],
 )
 def test_bad_robot_files_name_the_file_and_field(tmp_path, text, message) -> None:
@@ -148,3 +154,25 @@ def test_robot_option_reaches_the_twin(tmp_path, monkeypatch) -> None:
     finally:
         set_default_robot(None)
     assert default_robot() == RobotDescription()
+
+
+def test_backend_section(tmp_path) -> None:
+    assert robot_backend(None).kind == "twin" and not robot_backend(None).hardware
+    p = tmp_path / "r.yaml"
+    p.write_text(
+        "name: fixed-arm\n"
+        "backend:\n"
+        "  kind: direct\n"
+        "  direct: {ur_host: 10.0.0.2, realsense_playback: rec/desk.bag, base: none}\n"
+        "  safety: {speed_scale: 0.1}\n"
+    )
+    b = robot_backend(p)
+    assert b.kind == "direct" and b.hardware
+    assert b.direct.ur_host == "10.0.0.2" and b.safety.speed_scale == 0.1
+    assert b.direct.realsense_playback == tmp_path / "rec" / "desk.bag"  # beside the file
+    assert b.ros2.topics.scan == "/scan" and b.ros2.joint_names[0] == "shoulder_pan_joint"
+    robot, frames = load_robot(p)  # the section is not part of the description
+    assert robot.name == "fixed-arm"
+    q = tmp_path / "again.yaml"  # a written template reads back with the same backend
+    q.write_text(robot_to_yaml(robot, frames, backend=b))
+    assert robot_backend(q) == b and load_robot(q)[0] == robot

@@ -24,6 +24,11 @@ of the :class:`RobotDescription`: :func:`load_robot` accepts and skips it.
 :func:`robot_localization` returns the section as written). Like ``reflector_map`` it is not
 part of the :class:`RobotDescription`.
 
+``backend:`` (optional, default ``kind: twin``) says which robot the mission commands drive:
+the twin, a ROS 2 robot or the arm and camera directly
+(:class:`mmpa.robot.backend_config.BackendConfig`; :func:`robot_backend`, checked when the
+robot file is loaded; a relative ``direct.realsense_playback`` is read beside the robot file).
+
 ``frames`` names mmpa's frames as a ROS system does (REP-105 for the base, ur_description
 for the arm), with optional prefixes; :func:`frame_names` maps mmpa's names to them.
 
@@ -36,6 +41,7 @@ Example::
             angle_increment: 0.008726646}
     frames: {prefix: "", arm_prefix: "ur_"}
     localization: {method: amcl, amcl: {laser_model_type: beam, alpha1: 0.05}}
+    backend: {kind: direct, direct: {ur_host: 192.168.1.10}, safety: {speed_scale: 0.25}}
 """
 
 from __future__ import annotations
@@ -50,6 +56,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from mmpa.core.errors import ConfigError
 from mmpa.core.yamlio import load_yaml
+from mmpa.robot.backend_config import BackendConfig
 from mmpa.robot.description import RobotDescription
 
 __all__ = [
@@ -58,6 +65,7 @@ __all__ = [
     "frame_names",
     "load_robot",
     "read_ur_calibration",
+    "robot_backend",
     "robot_localization",
     "robot_reflector_map",
     "robot_to_yaml",
@@ -230,6 +238,7 @@ def load_robot(path: str | Path) -> tuple[RobotDescription, FrameNames]:
     doc = dict(doc)
     _reflector_map_entry(doc.pop("reflector_map", None), p)
     _localization_entry(doc.pop("localization", None), p)
+    _backend_entry(doc.pop("backend", None), p)
     try:
         frames = FrameNames.model_validate(doc.pop("frames", None) or {})
     except ValidationError as e:
@@ -279,6 +288,39 @@ def robot_localization(path: str | Path) -> dict[str, Any] | None:
     return _localization_entry(doc.get("localization"), p)
 
 
+def _backend_entry(value: Any, where: Path) -> BackendConfig:
+    """The ``backend`` section of robot file ``where``, checked (default: the twin)."""
+    if value is None:
+        return BackendConfig()
+    if not isinstance(value, dict):
+        raise ConfigError(
+            f"{where}: backend: must be a mapping (kind, ros2, direct, safety), "
+            f"got {type(value).__name__}"
+        )
+    try:
+        cfg = BackendConfig.model_validate(value)
+    except ValidationError as e:
+        raise ConfigError(f"{where}: backend.{_first_error(e)}") from None
+    playback = cfg.direct.realsense_playback
+    if playback is not None and not playback.is_absolute():
+        direct = cfg.direct.model_copy(update={"realsense_playback": where.parent / playback})
+        cfg = cfg.model_copy(update={"direct": direct})
+    return cfg
+
+
+def robot_backend(path: str | Path | None) -> BackendConfig:
+    """The ``backend`` section of robot file ``path`` (None: no robot file, the twin)."""
+    if path is None:
+        return BackendConfig()
+    p = Path(path)
+    doc = load_yaml(p)
+    if doc is None:
+        return BackendConfig()
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{p}: a robot file must be a YAML mapping")
+    return _backend_entry(doc.get("backend"), p)
+
+
 def robot_reflector_map(path: str | Path) -> Path | None:
     """The reflector map file named by robot file ``path`` (its optional ``reflector_map``
     entry, resolved beside the robot file), or None. The map itself is not read here."""
@@ -310,13 +352,16 @@ def robot_to_yaml(
     robot: RobotDescription,
     frames: FrameNames | None = None,
     reflector_map: str | Path | None = None,
+    backend: BackendConfig | None = None,
 ) -> str:
     """The robot file text of ``robot`` (every field, so it is a complete template), with
-    the optional ``reflector_map`` entry when given."""
+    the optional ``reflector_map`` entry and ``backend`` section when given."""
     doc = robot.model_dump(mode="json")
     doc["frames"] = (frames or FrameNames()).model_dump(mode="json")
     if reflector_map is not None:
         doc["reflector_map"] = str(reflector_map)
+    if backend is not None:
+        doc["backend"] = backend.model_dump(mode="json")
     return yaml.dump(doc, Dumper=_Dumper, sort_keys=False, width=100)
 
 
