@@ -120,14 +120,71 @@ def test_freedrive_demonstration_becomes_a_teach_recording() -> None:
     from mmpa.missions.teach_repeat import trajectory_recorder
 
     arm, fake = _arm()
-    fake.hand = lambda t: HOME + np.array([0.2, 0.0, 0.1, 0.0, 0.0, 0.0]) * min(t, 2.0) / 2.0
-    t, q = arm.record_freedrive(50.0, done=lambda: fake.clock >= 2.5)
+    t_hand = np.arange(0, 3.0, 0.002)
+    hand = HOME + np.outer(np.minimum(t_hand, 2.0) / 2.0, [0.2, 0.0, 0.1, 0.0, 0.0, 0.0])
+    fake.replay_freedrive(t_hand, hand)
+    t, q, g = arm.record_freedrive(50.0, done=lambda: fake.clock >= 2.5)
     names = [n for _, n, _ in fake.calls]
-    assert names[0] == "freedriveMode" and names[-1] == "endFreedriveMode"
+    assert names[0] == "teachMode" and names[-1] == "endTeachMode"
     np.testing.assert_allclose(np.diff(t), 0.02)  # 50 Hz on the controller's clock
     assert t[-1] == pytest.approx(2.5, abs=0.025)  # within one sample
     np.testing.assert_allclose(q[-1], HOME + np.array([0.2, 0, 0.1, 0, 0, 0]), atol=1e-12)
-    tt, qq, g, rate = trajectory_recorder(t, q, 50.0)()
-    assert rate == 50.0 and tt[0] == 0.0 and np.all(g == 0) and np.array_equal(qq, q)
+    tt, qq, gg, rate = trajectory_recorder(t, q, 50.0, g)()
+    assert rate == 50.0 and tt[0] == 0.0 and np.all(gg == 0) and np.array_equal(qq, q)
     with pytest.raises(InvalidInputError, match="N >= 2"):
         trajectory_recorder(t[:1], q[:1], 50.0)
+
+
+def test_freedrive_starts_and_stops_on_a_digital_input() -> None:
+    """A button on digital input 2: pressed at 0.3 s (start), released, pressed again at
+    1.31 s (stop): the samples run from the first press on the 50 Hz grid of the press
+    (t = 0 there) to the first grid sample at or after the second press (1.32 s: 52 samples),
+    and read the replayed hand exactly."""
+    from mmpa.backends.ur import DigitalInputButton
+
+    arm, fake = _arm()
+    t_hand = np.arange(0, 2.0, 0.002)
+    hand = HOME + np.outer(t_hand, [0.1, 0, 0, 0, 0, 0])
+    fake.replay_freedrive(t_hand, hand)
+    fake.digital_inputs([0.3, 0.4, 1.31, 1.4], [4, 0, 4, 0])
+    t, q, _ = arm.record_freedrive(50.0, button=DigitalInputButton(fake, 2))
+    assert len(t) == 52 and t[-1] == pytest.approx(1.02, abs=1e-12)
+    np.testing.assert_allclose(q[:, 0], HOME[0] + 0.1 * (0.3 + t), atol=1e-12)
+    assert fake.motion_commands() == [c for c in fake.calls if c[1] == "teachMode"]
+
+
+def test_watchdog_stops_a_stream_when_the_controller_stops_answering() -> None:
+    """RTDE receive frozen at 0.2 s of the path: the stream stops within watchdog_s (0.1 s
+    = 50 periods) with an error naming it, and servoStop is sent."""
+    fake = FakeRTDE(HOME)
+    arm = URArm(LIM, URConfig(watchdog_s=0.1), control=fake, receive=fake)
+    fake.stop_answering(0.2)
+    t, q = _ramp()
+    with pytest.raises(MMPAError, match=r"stopped answering.*0\.1 s"):
+        arm.follow(t, q)
+    ts, _ = fake.servo_targets()
+    assert 0.2 < ts[-1] <= 0.3 + 1e-9
+    assert fake.calls[-1][1] == "servoStop"
+
+
+def test_speed_scale_slows_every_motion() -> None:
+    """safety.speed_scale 0.25: moveJ at a quarter of the speed and acceleration, a path
+    played 4x slower (velocities x 0.25, accelerations x 0.0625), the stream limits x 0.25."""
+    fake = FakeRTDE(HOME + np.array([0.5, 0, 0, 0, 0, 0]))
+    full = URArm(LIM, URConfig(), control=FakeRTDE(HOME), receive=FakeRTDE(HOME))
+    arm = URArm(LIM, URConfig(speed_scale=0.25), control=fake, receive=fake)
+    t, q = _ramp()
+    arm.follow(t, q)
+    mv = fake.calls[0]
+    assert mv[1] == "moveJ"
+    assert mv[2][1] == pytest.approx(0.25 * 0.5 * LIM.qd_max.min())
+    assert mv[2][2] == pytest.approx(0.25 * 0.5 * LIM.qdd_max.min())
+    ts, qs = fake.servo_targets()
+    assert len(qs) == 2001 and ts[-1] == pytest.approx(4.0)  # 1 s path, 4 s at 500 Hz
+    v = np.abs(path_velocities(ts, qs)).max(axis=0)
+    v_path = np.abs(path_velocities(t, q)).max(axis=0)
+    np.testing.assert_allclose(v, 0.25 * v_path, rtol=0.02)
+    np.testing.assert_allclose(arm.stream_limits.qd_max, 0.25 * full.stream_limits.qd_max)
+    assert arm.stream_acceleration_limited
+    arm.stream_acceleration_limited = False
+    np.testing.assert_allclose(arm.stream_limits.qdd_max, 0.25 * LIM.qdd_stream_max)

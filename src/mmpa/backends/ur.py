@@ -5,8 +5,12 @@
 
 - every target and path is checked against the arm's position, velocity and acceleration
   limits (:mod:`mmpa.robot.limits`) before a single command is sent;
-- ``move_joints`` is the controller's ``moveJ`` at ``speed_fraction`` of the slowest joint's
-  velocity and acceleration limits;
+- ``speed_scale`` (the robot file's ``safety.speed_scale``, ``s`` in (0, 1]) slows every
+  motion: ``moveJ`` at ``s`` times its speed and acceleration, paths played ``1/s`` times
+  slower (joint velocities times ``s``, accelerations times ``s^2``), streamed set-points
+  within ``s`` times the velocity and acceleration limits;
+- ``move_joints`` is the controller's ``moveJ`` at ``speed_fraction * speed_scale`` of the
+  slowest joint's velocity and acceleration limits;
 - ``follow`` approaches the path's start with ``moveJ`` when the arm is away from it, then
   streams the path with ``servoJ`` at the controller's rate (``frequency``: 500 Hz on
   e-Series), timed by the controller's own ``initPeriod`` / ``waitPeriod``;
@@ -15,7 +19,13 @@
   (:func:`limit_setpoint`; ``qdd_max``, or the hard ``qdd_stream_max`` with
   ``stream_acceleration_limited`` off);
 - a protective or emergency stop (read from RTDE receive) aborts a stream and refuses every
-  motion with :class:`~mmpa.core.errors.MMPAError` until it is cleared on the pendant.
+  motion with :class:`~mmpa.core.errors.MMPAError` until it is cleared on the pendant;
+- a watchdog (``watchdog_s``, the robot file's ``safety.watchdog_s``): when the receive
+  interface's controller timestamp has not moved for that long (counted in control
+  periods), a stream, a path or a teaching recording stops with an error naming it;
+- ``record_freedrive`` records a person's demonstration in teach mode (``teachMode`` /
+  ``endTeachMode``), started and stopped by a key or a digital input
+  (:class:`DigitalInputButton`).
 
 ``control`` and ``receive`` may be given (objects with ur-rtde's ``RTDEControlInterface`` /
 ``RTDEReceiveInterface`` methods); otherwise they are made from ``host``.
@@ -23,6 +33,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 from collections.abc import Callable
@@ -42,7 +53,7 @@ from mmpa.robot.limits import (
     limit_setpoint,
 )
 
-__all__ = ["URArm", "URConfig"]
+__all__ = ["DigitalInputButton", "URArm", "URConfig", "scaled_limits"]
 
 _log = logging.getLogger(__name__)
 
@@ -59,6 +70,58 @@ class URConfig(BaseModel):
     servo_gain: float = Field(300.0, ge=100, le=2000)  # servoJ gain
     approach_tolerance: float = Field(1e-3, gt=0)  # rad: farther from a path's start: moveJ
     stop_deceleration: float = Field(2.0, gt=0)  # rad/s^2 of servoStop / stopJ
+    speed_scale: float = Field(1.0, gt=0, le=1)  # safety: of every speed and acceleration
+    watchdog_s: float | None = Field(0.5, gt=0)  # s without new RTDE data: stop (None: off)
+
+
+def scaled_limits(limits: JointLimits, s: float) -> JointLimits:
+    """``limits`` with the velocity and acceleration limits (and the hard stream limit)
+    times ``s``; positions unchanged."""
+    hard = None if limits.qdd_stream_max is None else limits.qdd_stream_max * s
+    return dataclasses.replace(
+        limits, qd_max=limits.qd_max * s, qdd_max=limits.qdd_max * s, qdd_stream_max=hard
+    )
+
+
+class DigitalInputButton:
+    """A button on one of the controller's digital inputs: calling it returns True once per
+    press (a rising edge of input ``index`` since the last call)."""
+
+    def __init__(self, receive: Any, index: int) -> None:
+        self._receive, self.index = receive, int(index)
+        self._last = bool(receive.getDigitalInState(self.index))
+
+    def __call__(self) -> bool:
+        now = bool(self._receive.getDigitalInState(self.index))
+        pressed = now and not self._last
+        self._last = now
+        return pressed
+
+
+class _Watchdog:
+    """Counts control periods since the receive interface's timestamp last moved; raises
+    when they exceed ``watchdog_s``."""
+
+    def __init__(self, receive: Any, watchdog_s: float | None, dt: float) -> None:
+        self._receive = receive
+        self._limit = None if watchdog_s is None else max(1, int(np.ceil(watchdog_s / dt)))
+        self._watchdog_s = watchdog_s
+        self._last = receive.getTimestamp() if self._limit is not None else None
+        self._still = 0
+
+    def tick(self) -> None:
+        if self._limit is None:
+            return
+        ts = self._receive.getTimestamp()
+        if ts != self._last:
+            self._last, self._still = ts, 0
+            return
+        self._still += 1
+        if self._still >= self._limit:
+            raise MMPAError(
+                f"the UR controller stopped answering: no new RTDE data for "
+                f"{self._watchdog_s} s (safety.watchdog_s); the motion was stopped"
+            )
 
 
 class URArm(StreamLimitsSwitch):
@@ -86,14 +149,27 @@ class URArm(StreamLimitsSwitch):
             except RuntimeError as e:  # pragma: no cover - needs a controller
                 raise MMPAError(f"cannot connect to the UR controller at {cfg.host}: {e}") from e
         self._control, self._receive = control, receive
+        self.receive = receive  # the digital inputs of the controller (DigitalInputButton)
         self._dt = 1.0 / cfg.frequency
         self._lock = threading.Lock()
         self._target: Array | None = None
         self._stream: threading.Thread | None = None
         self._stop = threading.Event()
         self.stream_error: Exception | None = None
-        #: the limits of the streamed set-points (``command``; ``StreamLimitsSwitch``)
-        self.stream_limits = limits
+        #: the limits of the streamed set-points (``command``): ``limits`` times the speed
+        #: scale (velocity and acceleration)
+        self.stream_limits = scaled_limits(limits, cfg.speed_scale)
+
+    @property
+    def stream_acceleration_limited(self) -> bool:
+        """True: streamed set-points within ``qdd_max`` (times the speed scale); False:
+        within the hard stream limit ``qdd_stream_max`` (times the speed scale)."""
+        s = self.cfg.speed_scale
+        return bool(np.array_equal(self.stream_limits.qdd_max, self.limits.qdd_max * s))
+
+    @stream_acceleration_limited.setter
+    def stream_acceleration_limited(self, on: bool) -> None:
+        self.stream_limits = scaled_limits(self.limits.stream(on), self.cfg.speed_scale)
 
     # ------------------------------------------------------------------ state
     def joint_positions(self) -> Array:
@@ -120,7 +196,7 @@ class URArm(StreamLimitsSwitch):
         q = check_target(q, self.limits)
         self.stop_stream()
         self._check_can_move()
-        f = self.cfg.speed_fraction
+        f = self.cfg.speed_fraction * self.cfg.speed_scale
         speed = f * float(np.min(self.limits.qd_max))
         accel = f * float(np.min(self.limits.qdd_max))
         if not self._control.moveJ(q.tolist(), speed, accel):
@@ -130,8 +206,9 @@ class URArm(StreamLimitsSwitch):
         self, times: Array, q_path: Array, record_hz: float | None = None
     ) -> tuple[Array, Array] | None:
         """Stream ``q_path`` (T, 6) at ``times`` (T,) s with ``servoJ`` at the controller's
-        rate (linear interpolation between samples); with ``record_hz`` also read the
-        encoders at that rate and return ``(t (M,), q (M, 6))``."""
+        rate (linear interpolation between samples), ``1 / speed_scale`` times slower than
+        ``times``; with ``record_hz`` also read the encoders at that rate (of the path's
+        own time) and return ``(t (M,), q (M, 6))``, ``t`` in the path's time."""
         times = as_floats(times, "follow: times")
         q_path = as_floats(q_path, "follow: q_path")
         check_path(times, q_path, self.limits)  # before anything moves
@@ -141,16 +218,20 @@ class URArm(StreamLimitsSwitch):
         self._check_can_move()
         if np.max(np.abs(q_path[0] - self.joint_positions())) > self.cfg.approach_tolerance:
             self.move_joints(q_path[0])
+        s = self.cfg.speed_scale
         t_rel = times - times[0]
-        n = int(np.floor(t_rel[-1] / self._dt + 1e-9)) + 1
-        every = None if record_hz is None else max(1, round(self.cfg.frequency / record_hz))
+        step = self._dt * s  # path time per control period
+        n = int(np.floor(t_rel[-1] / step + 1e-9)) + 1
+        every = None if record_hz is None else max(1, round(1.0 / (record_hz * step)))
         rec_t: list[float] = []
         rec_q: list[Array] = []
         c = self._control
+        dog = _Watchdog(self._receive, self.cfg.watchdog_s, self._dt)
         try:
             for k in range(n):
                 t_start = c.initPeriod()
-                t = min(k * self._dt, t_rel[-1])
+                dog.tick()
+                t = min(k * step, t_rel[-1])
                 q = np.array([np.interp(t, t_rel, q_path[:, j]) for j in range(6)])
                 c.servoJ(
                     q.tolist(), 0.0, 0.0, self._dt, self.cfg.servo_lookahead, self.cfg.servo_gain
@@ -169,36 +250,65 @@ class URArm(StreamLimitsSwitch):
 
     # ------------------------------------------------------------------ teaching
     def record_freedrive(
-        self, rate_hz: float, done: Callable[[], bool], max_seconds: float = 600.0
-    ) -> tuple[Array, Array]:
-        """A person's demonstration: freedrive mode on, the encoders read at ``rate_hz``
-        (timed by the controller) until ``done()`` or ``max_seconds``, freedrive off.
-        Returns ``t`` (N,) s from 0 and ``q`` (N, 6) rad (for
-        :func:`mmpa.missions.teach_repeat.trajectory_recorder`)."""
+        self,
+        rate_hz: float,
+        done: Callable[[], bool] | None = None,
+        max_seconds: float = 600.0,
+        *,
+        button: Callable[[], bool] | None = None,
+        gripper: Callable[[], float] | None = None,
+    ) -> tuple[Array, Array, Array]:
+        """A person's demonstration: teach mode on (``teachMode``: the person guides the
+        arm by hand), the encoders read every control period, kept at ``rate_hz`` (the
+        controller's clock), teach mode off.
+
+        With ``button`` (True once per press: a key, :class:`DigitalInputButton`) the
+        recording starts at the first press (``t = 0`` there) and ends at the first kept
+        sample at or after the second press; ``done()`` (checked at each kept sample) ends
+        it too. More than ``max_seconds`` of teach mode: :class:`MMPAError` (nothing kept).
+        Returns ``t`` (N,) s from 0, ``q`` (N, 6) rad and the gripper state (N,) in [0, 1]
+        read from ``gripper`` (0 without), for
+        :func:`mmpa.missions.teach_repeat.trajectory_recorder`."""
         if not (np.isfinite(rate_hz) and 0 < rate_hz <= self.cfg.frequency):
             raise InvalidInputError(f"rate_hz must be in (0, {self.cfg.frequency}], got {rate_hz}")
+        if button is None and done is None:
+            raise InvalidInputError("record_freedrive needs a button or a done() to stop")
         self.stop_stream()
         self._check_can_move()
         c = self._control
         every = max(1, round(self.cfg.frequency / rate_hz))
-        t_rec: list[float] = []
-        q_rec: list[Array] = []
-        if not c.freedriveMode():
-            raise MMPAError("the UR controller refused freedrive mode")
+        rec: list[tuple[float, Array, float]] = []
+        dog = _Watchdog(self._receive, self.cfg.watchdog_s, self._dt)
+        if not c.teachMode():
+            raise MMPAError("the UR controller refused teach mode (freedrive)")
         try:
-            k = 0
-            while k * self._dt <= max_seconds:
+            k, k0, stop = 0, None if button is not None else 0, False
+            while True:
                 t_start = c.initPeriod()
-                if k % every == 0:
-                    t_rec.append(k * self._dt)
-                    q_rec.append(self.joint_positions())
-                    if done():
+                dog.tick()
+                q = self.joint_positions()
+                if k0 is None:
+                    k0 = k if button is not None and button() else None
+                elif button is not None and button():
+                    stop = True
+                if k0 is not None and (k - k0) % every == 0:
+                    rec.append(((k - k0) * self._dt, q, 0.0 if gripper is None else gripper()))
+                    if stop or (done is not None and done()):
                         break
+                if k * self._dt > max_seconds:
+                    raise MMPAError(
+                        f"the demonstration did not end within {max_seconds:g} s of teach "
+                        "mode (press the stop button / key)"
+                    )
                 k += 1
                 c.waitPeriod(t_start)
         finally:
-            c.endFreedriveMode()
-        return np.array(t_rec), np.array(q_rec)
+            c.endTeachMode()
+        return (
+            np.array([r[0] for r in rec]),
+            np.array([r[1] for r in rec]),
+            np.array([r[2] for r in rec]),
+        )
 
     # ------------------------------------------------------------------ streaming
     def command(self, q: Array) -> None:
@@ -221,9 +331,11 @@ class URArm(StreamLimitsSwitch):
         q = self.joint_positions()
         v = np.zeros(6)
         try:
+            dog = _Watchdog(self._receive, self.cfg.watchdog_s, self._dt)
             k = 0
             while not self._stop.is_set():
                 t_start = c.initPeriod()
+                dog.tick()
                 with self._lock:
                     target = self._target
                 if target is not None:
