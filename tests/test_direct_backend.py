@@ -1,0 +1,86 @@
+"""The direct backend (UR over RTDE + RealSense over its SDK): its devices from the robot
+file's backend section, against the recording FAKE of RTDE (mmpa.backends.ur_fake) and a
+RealSense recording played by the SDK; connection failures name the device and what was
+tried."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pyrealsense2", reason="the optional extra 'realsense'")
+
+from mmpa.backends import direct
+from mmpa.backends.realsense import RealSenseCamera, record_frames
+from mmpa.backends.ur import URArm
+from mmpa.backends.ur_fake import FakeRTDE
+from mmpa.core.errors import ConfigError, InvalidInputError, MMPAError
+from mmpa.robot.backend_config import BackendConfig, DirectBackend, SafetyConfig
+from mmpa.robot.description import CameraIntrinsics, default_robot
+from mmpa.robot.interfaces import RGBDFrame, WallClock
+
+ROBOT = default_robot()
+HOME = np.array(ROBOT.arm.home)
+
+
+def _cfg(**direct) -> BackendConfig:
+    return BackendConfig(
+        kind="direct",
+        direct=DirectBackend(**direct),
+        safety=SafetyConfig(speed_scale=0.5, watchdog_s=0.2),
+    )
+
+
+def _recording(path) -> str:
+    k = CameraIntrinsics(width=32, height=24, fx=30.0, fy=30.0, cx=15.5, cy=11.5)
+    frame = RGBDFrame(np.zeros((24, 32, 3), np.uint8), np.ones((24, 32), np.float32), k, 0.0)
+    return str(record_frames([frame, frame], path))
+
+
+def test_direct_devices_from_the_backend_section(tmp_path, monkeypatch) -> None:
+    fake = FakeRTDE(HOME)
+    tried = []
+
+    def connect(host, frequency):
+        tried.append((host, frequency))
+        return fake, fake
+
+    monkeypatch.setattr(direct, "connect_rtde", connect)
+    cfg = _cfg(ur_host="10.0.0.7", ur_frequency=125.0, realsense_playback=_recording(
+        tmp_path / "cam.db3"))  # fmt: skip
+    with direct.open_direct(cfg, ROBOT) as robot:
+        assert isinstance(robot.arm, URArm) and isinstance(robot.camera, RealSenseCamera)
+        assert robot.base is None and robot.gripper is None and robot.lidar is None
+        assert isinstance(robot.clock, WallClock)
+        assert robot.arm.cfg.speed_scale == 0.5 and robot.arm.cfg.watchdog_s == 0.2
+        assert robot.arm.cfg.frequency == 125.0
+        np.testing.assert_allclose(robot.arm.joint_positions(), HOME)
+        assert robot.camera.capture().depth[0, 0] == pytest.approx(1.0)
+    assert tried == [("10.0.0.7", 125.0)]
+    assert fake.calls[-1][1] == "disconnect"  # closed with the block
+    with direct.open_direct(_cfg(ur_host="10.0.0.7", camera=False), ROBOT) as robot:
+        assert robot.camera is None and robot.arm is not None
+
+
+def test_connection_failures_name_the_device(tmp_path) -> None:
+    missing = tmp_path / "none.db3"
+    with (
+        pytest.raises(InvalidInputError, match=rf"RealSense recording {missing}.*no RealSense"),
+        direct.open_direct(_cfg(realsense_playback=missing), ROBOT),
+    ):
+        pass
+    with (
+        pytest.raises(MMPAError, match=r"UR (arm )?at 192\.0\.2\.1"),
+        direct.open_direct(_cfg(ur_host="192.0.2.1", camera=False), ROBOT),
+    ):
+        pass  # here: no ur-rtde; with it: no controller at that (test-net) address
+    with (
+        pytest.raises(ConfigError, match="base: ros2"),
+        direct.open_direct(_cfg(base="ros2"), ROBOT),
+    ):
+        pass
+    with (
+        pytest.raises(ConfigError, match="kind direct"),
+        direct.open_direct(BackendConfig(), ROBOT),
+    ):
+        pass
