@@ -314,6 +314,7 @@ def run_cmd(
 from mmpa.cli import bags as _bags  # noqa: E402  (registers localize)
 from mmpa.cli import calibrate as _calibrate  # noqa: E402  (registers calibrate)
 from mmpa.cli import datasets as _datasets  # noqa: E402  (registers convert, benchmark)
+from mmpa.cli import grasp as _grasp  # noqa: E402  (registers grasp)
 from mmpa.cli import navigation as _navigation  # noqa: E402  (registers navigate, map)
 from mmpa.cli import register as _register  # noqa: E402  (registers register)
 from mmpa.cli import robot as _robot  # noqa: E402  (registers robot)
@@ -328,6 +329,7 @@ _register.register(app)
 _sweep.register(app)
 _datasets.register(app)
 _ros2.register(app)
+_grasp.register(app)
 
 
 def main() -> None:
