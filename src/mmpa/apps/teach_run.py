@@ -15,13 +15,24 @@ from pathlib import Path
 
 import numpy as np
 
+from mmpa.apps.path_report import check_adapted_path, write_dry_run
 from mmpa.backends.bag.record import ARM_RATE_HZ
-from mmpa.core.geometry import T_to_vec6
+from mmpa.core.errors import MMPAError
+from mmpa.core.geometry import Array, T_to_vec6
 from mmpa.harness.ipe_eval import ipe_rows, offset_row
 from mmpa.harness.twin_site import MMPAExperimentConfig, TwinSite
-from mmpa.tasks import TaskStore
+from mmpa.missions.teach_repeat import (
+    AutomationConfig,
+    AutomationResult,
+    arm_stopped,
+    automate,
+    execute_joint_path,
+)
+from mmpa.robot.interfaces import MobileManipulator, require
+from mmpa.robot.limits import JointLimits
+from mmpa.tasks import Task, TaskStore
 
-__all__ = ["RECORD_MIN_JOINT_HZ", "run_task", "teach_task"]
+__all__ = ["RECORD_MIN_JOINT_HZ", "run_task", "run_task_on_robot", "teach_task"]
 
 Progress = Callable[[str, float], None]
 
@@ -117,6 +128,112 @@ def run_task(
         if record is not None:
             out["bag"] = str(record)
         return out
+
+
+def run_task_on_robot(
+    robot: MobileManipulator,
+    task: Task,
+    *,
+    cfg: AutomationConfig | None = None,
+    confirm: Callable[[str], bool] | None = None,
+    dry_run: Path | None = None,
+    T_map_base_now: Array | None = None,
+    progress: Progress | None = None,
+    record_hz: float | None = None,
+) -> dict:
+    """The automation stage on any robot (the twin, ROS 2, the direct backend), standing
+    where it was parked (a mobile base: navigated to the task's park pose before; a fixed
+    base: where it is): IPE with the robot's camera and arm (its views move the arm), the
+    adapted path (eq. 11, IK, retiming), then, BEFORE the arm moves along it, the check
+    (:class:`~mmpa.apps.path_report.PathCheck`: the estimate, the adapted path's clearance
+    from the taught one, the limits):
+
+    - ``dry_run`` (a folder): write the adapted path (CSV, JSON) and a picture there and
+      stop: nothing moves after the IPE views;
+    - ``confirm`` (given): asked with the check's text; False: nothing moves;
+    - a failed estimate, a path out of reach or beyond the limits, or an arm in protective
+      or emergency stop: nothing moves (``reason`` says why).
+
+    ``T_map_base_now``: the localization estimate of the base (IPE's first guess; None for a
+    fixed base). Returns the summary (``executed``, ``reason``, the estimate, the check, the
+    files written)."""
+    require(robot, "arm", "camera", mission="running a task")
+    cfg = (cfg or AutomationConfig()).model_copy(update={"execute": False})
+    out: dict = {"task": task.name, "executed": False}
+    why = arm_stopped(robot.arm)
+    if why is not None:
+        out["reason"] = f"the arm is in {why}: clear it, then run again"
+        return out
+    res = automate(task, robot, cfg=cfg, T_map_base_now=T_map_base_now, progress=progress)
+    _ipe_summary(res, out)
+    if not res.ok:
+        out["reason"] = res.reason
+        return out
+    assert res.joint_path is not None and res.T_arm_base_tool is not None
+    assert res.ipe is not None and res.ipe.dT_B is not None
+    arm, rd = robot.arm, robot.description
+    assert arm is not None
+    check = check_adapted_path(
+        task.path.T_arm_base_tool,
+        res.T_arm_base_tool,
+        res.joint_path,
+        arm.joint_positions(),
+        JointLimits.from_description(rd.arm),
+    )
+    text = "\n".join([f"task {task.name}: estimate dT_B {out['estimate_6d']}", *check.lines()])
+    out["check"] = text
+    if dry_run is not None:
+        files = write_dry_run(
+            dry_run, task.name, task.path.T_arm_base_tool, res.T_arm_base_tool,
+            res.joint_path, res.ipe.dT_B, check,
+        )  # fmt: skip
+        out.update(reason="dry run: nothing moved after the IPE views", files=files)
+        return out
+    if not check.limits_ok:
+        out["reason"] = f"the adapted path breaks the limits: {check.limits_reason}"
+        return out
+    if confirm is not None and not confirm(text):
+        out["reason"] = "not confirmed: nothing moved after the IPE views"
+        return out
+    return _execute(robot, task, res, out, record_hz)
+
+
+def _ipe_summary(res: AutomationResult, out: dict) -> None:
+    ipe = res.ipe
+    out["ipe_ok"] = bool(ipe is not None and ipe.ok)
+    if ipe is not None:
+        out["ipe_iterations"] = ipe.n_iterations
+        if ipe.dT_B is not None:
+            out["estimate_6d"] = _vec(ipe.dT_B)
+    if res.joint_path is not None:
+        out["path_time_scale"] = round(res.joint_path.time_scale, 3)
+
+
+def _execute(
+    robot: MobileManipulator,
+    task: Task,
+    res: AutomationResult,
+    out: dict,
+    record_hz: float | None,
+) -> dict:
+    """Run the adapted path; a stop or a refusal on the way ends it with the reason."""
+    arm = robot.arm
+    assert arm is not None and res.joint_path is not None
+    why = arm_stopped(arm)
+    if why is not None:
+        out["reason"] = f"the arm is in {why}: clear it, then run again"
+        return out
+    try:
+        rec = execute_joint_path(
+            arm, robot.gripper, res.joint_path, task.path.gripper, record_hz=record_hz
+        )
+    except MMPAError as e:
+        out["reason"] = f"stopped while moving: {e}"
+        return out
+    out["executed"] = True
+    if rec is not None:
+        out["record"] = rec
+    return out
 
 
 def _vec(T: np.ndarray) -> str:

@@ -38,15 +38,20 @@ __all__ = [
     "AutomationConfig",
     "AutomationResult",
     "TeachConfig",
+    "arm_stopped",
     "automate",
     "check_tool_path",
     "execute_joint_path",
+    "joint_recorder",
     "repark_motion",
     "replay_tmma",
     "teach",
     "tool_path_mismatch",
     "trajectory_recorder",
 ]
+
+#: a start/stop button of a person's demonstration: True once per press (a key, an input)
+Button = Callable[[], bool]
 
 Progress = Callable[[str, float], None]
 #: a re-park request: drive the base by ``[dx, dy, dtheta]`` (m, rad) in its current base_link
@@ -87,6 +92,62 @@ def trajectory_recorder(
         return t - t[0], q.copy(), g.copy(), float(rate_hz)
 
     return record
+
+
+def joint_recorder(
+    robot: MobileManipulator,
+    rate_hz: float,
+    button: Button,
+    *,
+    max_seconds: float = 600.0,
+    gripper: Callable[[], float] | None = None,
+) -> Recorder:
+    """A teach-in ``record`` source for any backend: a person guides the arm (a teach
+    pendant's freedrive, a hand-guided cobot) while ``robot.arm.joint_positions()`` is
+    sampled every ``1 / rate_hz`` s of the robot's clock (``robot.step``), from the first
+    press of ``button`` (``t = 0``) to the first sample at or after the second press.
+    ``gripper`` (optional) gives the gripper state in [0, 1] at each sample. More than
+    ``max_seconds``: :class:`MMPAError`. For a UR over RTDE,
+    :meth:`mmpa.backends.ur.URArm.record_freedrive` does the same at the controller's rate."""
+    require(robot, "arm", mission="recording a demonstration")
+    arm = robot.arm
+    assert arm is not None
+    if not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise InvalidInputError(f"rate_hz must be a positive rate, got {rate_hz}")
+    dt = 1.0 / float(rate_hz)
+
+    def record() -> tuple[Array, Array, Array, float]:
+        t0 = robot.time
+        while not button():
+            if robot.time - t0 > max_seconds:
+                raise MMPAError(f"the demonstration did not start within {max_seconds:g} s")
+            robot.step(dt)
+        t: list[float] = []
+        q: list[Array] = []
+        g: list[float] = []
+        stop, k = False, 0
+        while True:
+            t.append(k * dt)
+            q.append(np.asarray(arm.joint_positions(), dtype=float))
+            g.append(0.0 if gripper is None else float(gripper()))
+            if stop:
+                break
+            if k * dt > max_seconds:
+                raise MMPAError(f"the demonstration did not end within {max_seconds:g} s")
+            robot.step(dt)
+            k += 1
+            stop = button()
+        return np.array(t), np.array(q), np.array(g), float(rate_hz)
+
+    return record
+
+
+def arm_stopped(arm: Arm | None) -> str | None:
+    """Why ``arm``'s controller will not move (a protective or emergency stop: a
+    :class:`~mmpa.robot.interfaces.StreamingArm`'s ``stopped()``), or None (an arm that
+    does not report it: None)."""
+    stopped = getattr(arm, "stopped", None)
+    return None if stopped is None else stopped()
 
 
 def teach(
