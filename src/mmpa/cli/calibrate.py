@@ -1,6 +1,7 @@
-"""``mmpa calibrate``: calibrations run in the twin (``hand-eye``: the wrist camera on the
-flange from a ChArUco board; ``lidar-mount``; ``reflectors``: the reflector map surveyed
-from a drive; see :mod:`mmpa.apps.calibrate`)."""
+"""``mmpa calibrate``: calibrations in the twin (``hand-eye``: the wrist camera on the flange
+from a ChArUco board; ``lidar-mount``; ``reflectors``: the reflector map surveyed from a
+drive; see :mod:`mmpa.apps.calibrate`); ``hand-eye`` and ``reflectors`` also on the robot of
+``mmpa --robot R`` (a ``ros2`` or ``direct`` backend), asking before it moves."""
 
 from __future__ import annotations
 
@@ -11,13 +12,14 @@ from typing import Annotated
 import typer
 
 from mmpa.cli.common import console, fail
+from mmpa.cli.hardware import YesOpt, backend_in_use, confirmer, open_hardware
 from mmpa.core.errors import MMPAError
 
 __all__ = ["calibrate_app", "register"]
 
 calibrate_app = typer.Typer(
     help="Calibrations in the twin: hand-eye (ChArUco board), lidar mount (a turn on the spot), "
-    "reflectors (a survey drive)."
+    "reflectors (a survey drive); hand-eye and reflectors on any backend (mmpa --robot R)."
 )
 
 _PROFILES = ("ideal", "reference", "realistic", "harsh")
@@ -35,16 +37,88 @@ def _twin_env() -> None:
     os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 
+_BoardSquaresOpt = Annotated[
+    str | None,
+    typer.Option(help="ChArUco board: squares across x down, e.g. 7x5 (default 7x5)."),
+]
+
+
+def _board(squares: str | None, square: float | None, marker: float | None, dictionary: str | None):
+    """The board fields given on the command line (None: the default board)."""
+    board: dict[str, object] = {}
+    if squares is not None:
+        try:
+            nx, ny = (int(v) for v in squares.lower().split("x"))
+        except ValueError:
+            raise typer.BadParameter(f"--board-squares {squares!r}: use NxM, e.g. 7x5") from None
+        board |= {"squares_x": nx, "squares_y": ny}
+    given = {"square": square, "marker": marker, "dictionary": dictionary}
+    board |= {k: v for k, v in given.items() if v is not None}
+    return board or None
+
+
+def _hand_eye_config(stations: int, method: str, board: dict | None, **twin):
+    """The twin run's / the procedure's settings; a bad board is a usage error."""
+    from pydantic import ValidationError
+
+    from mmpa.apps.calibrate import HandEyeConfig
+
+    extra = {} if board is None else {"board": board}
+    try:
+        return HandEyeConfig(stations=stations, method=method, **extra, **twin)
+    except ValidationError as e:
+        err = e.errors()[0]
+        where = ".".join(map(str, err["loc"]))
+        raise typer.BadParameter(f"{where}: {err['msg']}") from None
+
+
+def _hand_eye_hardware(cfg, out: Path, path: Path, backend, yes: bool) -> None:
+    """The calibration on the robot of ``path`` (no truth: the residuals)."""
+    from mmpa.apps.calibrate import run_hand_eye_on_robot
+
+    try:
+        with open_hardware(path) as robot:
+            s = run_hand_eye_on_robot(
+                robot,
+                cfg,
+                out,
+                kind=backend.kind,
+                confirm=confirmer(yes, backend),
+                log=lambda m: console.print(m, highlight=False),
+                robot_file=path,
+            )
+    except MMPAError as e:
+        fail(e)
+    if not s["ok"]:
+        console.print(f"[yellow]not calibrated: {s['reason']}[/]", highlight=False)
+        raise typer.Exit(1)
+    r, k = s["residuals"], s["kinematics"]
+    console.print(
+        f"hand-eye ({s['method']}, {s['stations_used']} of {s['stations_planned']} views): "
+        f"board corner spread {r['point_rms_mm']:.3f} mm RMS, AX=XB {r['axxb_trans_mm']:.3f} mm "
+        f"{r['axxb_rot_deg']:.4f} deg; joint fit {k['rms_px_start']:.3f} -> {k['rms_px']:.3f} px "
+        f"RMS; {s['change_from_nominal_trans_mm']:.2f} mm, "
+        f"{s['change_from_nominal_rot_deg']:.3f} deg from the nominal hand-eye; wrote "
+        f"{out}/summary.json, {out}/hand_eye.yaml and {out}/robot.yaml (use it: mmpa --robot "
+        f"{out}/robot.yaml ...)",
+        highlight=False,
+    )
+
+
 @calibrate_app.command("hand-eye")
 def hand_eye_cmd(
     out: Annotated[Path, typer.Option(help="output folder (summary.json, hand_eye.yaml)")],
-    site: Annotated[str, typer.Option(help="site of the scene the board stands in front of")] = "0",
+    site: Annotated[
+        str, typer.Option(help="twin: site of the scene the board stands in front of")
+    ] = "0",
     stations: Annotated[
         int, typer.Option(help="number of views of the board", min=3, max=100)
     ] = 40,
-    seed: Annotated[int, typer.Option(help="robot instance of the twin's error model", min=0)] = 0,
+    seed: Annotated[
+        int, typer.Option(help="twin: robot instance of the twin's error model", min=0)
+    ] = 0,
     profile: Annotated[
-        str, typer.Option(help="error model profile: ideal, reference, realistic, harsh")
+        str, typer.Option(help="twin: error model profile: ideal, reference, realistic, harsh")
     ] = "realistic",
     method: Annotated[
         str,
@@ -53,24 +127,38 @@ def hand_eye_cmd(
             "corners); opencv: cv2.calibrateHandEye with the nominal kinematics"
         ),
     ] = "joint",
+    board_squares: _BoardSquaresOpt = None,
+    board_square: Annotated[
+        float | None, typer.Option(help="board square side, m (default 0.04)", min=0.001)
+    ] = None,
+    board_marker: Annotated[
+        float | None, typer.Option(help="board marker side, m (default 0.03)", min=0.001)
+    ] = None,
+    board_dict: Annotated[
+        str | None, typer.Option(help="ArUco dictionary (default DICT_5X5_100)")
+    ] = None,
+    yes: YesOpt = False,
 ) -> None:
-    """Calibrate the wrist camera's pose on the flange (eye-in-hand) in the twin: a ChArUco
+    """Calibrate the wrist camera's pose on the flange (eye-in-hand). In the twin: a ChArUco
     board in front of SITE, STATIONS planned views, cv2.calibrateHandEye with all five
     methods (the one with the smallest residuals picked), then the joint kinematic +
-    hand-eye calibration from it; both compared with the TRUE hand-eye, METHOD's written."""
+    hand-eye calibration from it; both compared with the TRUE hand-eye, METHOD's written.
+    With `mmpa --robot R` on a ros2 / direct robot: point the camera at your board (its
+    geometry: --board-*), the views are planned around it from where the arm stands and
+    visited after a question (--yes skips it); no truth: the residuals."""
     _choice("profile", profile, _PROFILES)
     _choice("method", method, ("joint", "opencv"))
+    board = _board(board_squares, board_square, board_marker, board_dict)
+    path, backend = backend_in_use()
+    if backend.hardware:
+        cfg = _hand_eye_config(stations, method, board)
+        _hand_eye_hardware(cfg, out, path, backend, yes)
+        return
     _twin_env()
     try:
-        from mmpa.apps.calibrate import HandEyeConfig, run_hand_eye
+        from mmpa.apps.calibrate import run_hand_eye
 
-        cfg = HandEyeConfig(
-            site=site,
-            stations=stations,
-            seed=seed,
-            profile=profile,  # type: ignore[arg-type]
-            method=method,  # type: ignore[arg-type]
-        )
+        cfg = _hand_eye_config(stations, method, board, site=site, seed=seed, profile=profile)
         s = run_hand_eye(cfg, out, log=lambda m: console.print(m, highlight=False))
     except MMPAError as e:
         fail(e)

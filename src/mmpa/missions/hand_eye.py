@@ -7,9 +7,12 @@ Steps (:func:`calibrate_hand_eye_on_robot`; only the robot's NOMINAL model is kn
 1. a first view of the board planned from a rough guess of where it stands in the arm base
    frame (``T_armbase_board_guess``: a tape measure will do, views keep the whole board in
    the image), near ``q_ref``: move there, detect the board, and estimate its pose
-   ``Y0 = fk(q) X_nominal C``;
+   ``Y0 = fk(q) X_nominal C``; without a guess (a real robot whose camera the user pointed
+   at the board), the first view is where the arm stands: nothing moves in this step;
 2. plan ``stations`` views around ``Y0`` (:func:`mmpa.calibration.hand_eye.plan_stations`:
-   four distances, tilts, rolls);
+   four distances, tilts, rolls) near the first view's configuration; ``confirm(stations)``
+   (a hardware backend asks its user) may decline them: :class:`NotConfirmedError`, the arm
+   has not moved since step 1;
 3. at each: ``arm.move_joints``, wait ``settle_s``, read the encoders ``q_i``, capture, detect
    the board and solve PnP (``C_i``); ``G_i = fk(nominal dh, q_i)``; a view without the
    board is skipped (and reported);
@@ -64,8 +67,13 @@ from mmpa.robot.kinematics import fk
 __all__ = [
     "HandEyeProcedureConfig",
     "HandEyeProcedureResult",
+    "NotConfirmedError",
     "calibrate_hand_eye_on_robot",
 ]
+
+
+class NotConfirmedError(MMPAError):
+    """The user declined the planned views: the arm did not move toward them."""
 
 
 class HandEyeProcedureConfig(BaseModel):
@@ -185,6 +193,24 @@ def _first_view(
     return q0, pose0, Y0
 
 
+def _board_in_view(
+    arm: Arm,
+    camera: Camera,
+    robot: RobotDescription,
+    cfg: HandEyeProcedureConfig,
+    log: Callable[[str], None],
+) -> tuple[Array, CharucoPose, Array]:
+    """Step 1 without a move: the board seen from where the arm stands; returns the encoder
+    reading ``q0`` (6,) rad, the board seen and its pose ``Y0 = fk(q0) X_nominal C`` (4, 4)
+    in the arm base. Raises :class:`~mmpa.calibration.charuco.BoardNotFoundError` when the
+    camera does not see it."""
+    q0 = np.asarray(arm.joint_positions(), float)
+    pose0 = _capture_board(camera, cfg)
+    Y0 = fk(robot.arm.dh, q0) @ robot.camera.T_flange_camera @ pose0.T_camera_board
+    log(f"board in view: {pose0.n_corners} corners, {pose0.rms_px:.3f} px RMS")
+    return q0, pose0, Y0
+
+
 @dataclass
 class _Views:
     """Step 3's harvest: per planned view a row (``rows``), per used view the encoder
@@ -280,41 +306,18 @@ def _fit(
     return res, joint, pix, joint_s
 
 
-def calibrate_hand_eye_on_robot(
-    robot: MobileManipulator,
-    T_armbase_board_guess: Array,
-    q_ref: Array,
-    cfg: HandEyeProcedureConfig | None = None,
-    *,
-    wait: Callable[[float], None] | None = None,
-    log: Callable[[str], None] | None = None,
-    on_view: Callable[[int, CharucoPose], dict[str, Any]] | None = None,
-) -> HandEyeProcedureResult:
-    """Calibrate the wrist camera of ``robot`` (its arm and camera; module docstring) from its
-    nominal description, a rough board pose ``T_armbase_board_guess`` (4, 4) in the arm
-    base frame and the configuration ``q_ref`` (6,) rad the views stay near (no wrist flip).
-    ``wait(s)`` lets the arm settle after each move (default ``robot.step``: the twin steps
-    its physics, a :class:`~mmpa.robot.interfaces.WallClock` sleeps); ``on_view(i, pose)``
-    is called after each detected view and its dict joins the view's row (an evaluation's
-    ground truth; nothing here uses it).
-    Raises :class:`~mmpa.core.errors.InvalidInputError` on a malformed guess or ``q_ref``,
-    :class:`~mmpa.core.errors.UnreachableError` when the views cannot be planned,
-    :class:`~mmpa.calibration.charuco.BoardNotFoundError` when the first view shows no
-    board, and :class:`MMPAError` when fewer than 3 views saw it."""
-    cfg = cfg or HandEyeProcedureConfig()
-    log = log or (lambda m: None)
-    guess, q_ref = _check_inputs(T_armbase_board_guess, q_ref)
-    require(robot, "arm", "camera", mission="the hand-eye calibration")
-    arm, camera, rd = robot.arm, robot.camera, robot.description
-    assert arm is not None and camera is not None
-    wait = robot.step if wait is None else wait
-    dh = rd.arm.dh
-    K, size = _camera_geometry(camera)
-    # 1. first view, planned from the guess
-    q0, pose0, Y0 = _first_view(arm, camera, rd, guess, q_ref, cfg, wait, log)
-    # 2. stations around the measured board
-    stations = plan_stations(
-        dh,
+def _plan(
+    rd: RobotDescription,
+    Y0: Array,
+    q0: Array,
+    K: Array,
+    size: tuple[int, int],
+    cfg: HandEyeProcedureConfig,
+) -> list[Station]:
+    """Step 2: ``cfg.stations`` views around the board pose ``Y0`` (4, 4, arm base) near the
+    configuration ``q0`` (6,) rad."""
+    return plan_stations(
+        rd.arm.dh,
         rd.arm.q_limits,
         Y0,
         rd.camera.T_flange_camera,
@@ -327,6 +330,53 @@ def calibrate_hand_eye_on_robot(
         tilts_deg=cfg.tilts_deg,
         rolls_deg=cfg.rolls_deg,
     )
+
+
+def calibrate_hand_eye_on_robot(
+    robot: MobileManipulator,
+    T_armbase_board_guess: Array | None,
+    q_ref: Array | None,
+    cfg: HandEyeProcedureConfig | None = None,
+    *,
+    wait: Callable[[float], None] | None = None,
+    log: Callable[[str], None] | None = None,
+    on_view: Callable[[int, CharucoPose], dict[str, Any]] | None = None,
+    confirm: Callable[[list[Station]], bool] | None = None,
+) -> HandEyeProcedureResult:
+    """Calibrate the wrist camera of ``robot`` (its arm and camera; module docstring) from its
+    nominal description, a rough board pose ``T_armbase_board_guess`` (4, 4) in the arm
+    base frame and the configuration ``q_ref`` (6,) rad the views stay near (no wrist flip);
+    ``T_armbase_board_guess`` None: the board is in view now, the first view is the arm's
+    current configuration (``q_ref`` unused). ``confirm(stations)`` is asked before the arm
+    moves to the planned views (None: no question).
+    ``wait(s)`` lets the arm settle after each move (default ``robot.step``: the twin steps
+    its physics, a :class:`~mmpa.robot.interfaces.WallClock` sleeps); ``on_view(i, pose)``
+    is called after each detected view and its dict joins the view's row (an evaluation's
+    ground truth; nothing here uses it).
+    Raises :class:`~mmpa.core.errors.InvalidInputError` on a malformed guess or ``q_ref``,
+    :class:`~mmpa.core.errors.UnreachableError` when the views cannot be planned,
+    :class:`~mmpa.calibration.charuco.BoardNotFoundError` when the first view shows no
+    board, :class:`NotConfirmedError` when ``confirm`` declines, and :class:`MMPAError`
+    when fewer than 3 views saw it."""
+    cfg = cfg or HandEyeProcedureConfig()
+    log = log or (lambda m: None)
+    if T_armbase_board_guess is not None:
+        guess, q_ref = _check_inputs(T_armbase_board_guess, q_ref)
+    require(robot, "arm", "camera", mission="the hand-eye calibration")
+    arm, camera, rd = robot.arm, robot.camera, robot.description
+    assert arm is not None and camera is not None
+    wait = robot.step if wait is None else wait
+    dh = rd.arm.dh
+    K, size = _camera_geometry(camera)
+    # 1. first view: planned from the guess, or where the arm stands
+    if T_armbase_board_guess is None:
+        q0, pose0, Y0 = _board_in_view(arm, camera, rd, cfg, log)
+    else:
+        q0, pose0, Y0 = _first_view(arm, camera, rd, guess, q_ref, cfg, wait, log)
+    # 2. stations around the measured board
+    stations = _plan(rd, Y0, q0, K, size, cfg)
+    if confirm is not None and not confirm(stations):
+        raise NotConfirmedError(f"the {len(stations)} planned views were declined; nothing moved")
     # 3. visit them; 4.-5. the fits
     views = _visit(arm, camera, dh, stations, cfg, wait, log, on_view)
     res, joint, pix, joint_s = _fit(dh, views, K, cfg, log)

@@ -3,7 +3,9 @@
 - ``mmpa calibrate hand-eye`` (:mod:`~mmpa.apps.calibrate.hand_eye`, the evaluation in
   :mod:`~mmpa.apps.calibrate.hand_eye_truth`): a ChArUco board in front of a site, the
   procedure over the robot interfaces (:mod:`mmpa.missions.hand_eye`), OpenCV's five
-  methods and the joint DH + hand-eye fit;
+  methods and the joint DH + hand-eye fit; on a hardware robot
+  (:mod:`~mmpa.apps.calibrate.hand_eye_robot`): the board in the camera's view, the views
+  planned around it after the user's confirmation, no truth (the residuals);
 - ``mmpa calibrate lidar-mount`` (:mod:`~mmpa.apps.calibrate.lidar_mount`): a turn on the
   spot and a circle fit;
 - ``mmpa calibrate reflectors`` (:mod:`~mmpa.apps.calibrate.reflectors`): the reflector map
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 from mmpa.apps.calibrate.files import hand_eye_yaml, ur_calibration_conf, write_robot_file
 from mmpa.apps.calibrate.hand_eye import HandEyeConfig, run_hand_eye
+from mmpa.apps.calibrate.hand_eye_robot import run_hand_eye_on_robot
 from mmpa.apps.calibrate.hand_eye_truth import last_link_error
 from mmpa.apps.calibrate.lidar_mount import run_lidar_mount
 from mmpa.apps.calibrate.reflectors import ReflectorSurveyConfig, run_reflector_survey
@@ -27,6 +30,7 @@ __all__ = [
     "hand_eye_yaml",
     "last_link_error",
     "run_hand_eye",
+    "run_hand_eye_on_robot",
     "run_lidar_mount",
     "run_reflector_survey",
     "ur_calibration_conf",

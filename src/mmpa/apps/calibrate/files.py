@@ -16,7 +16,7 @@ import yaml
 from mmpa.calibration.kinematic import DH_GROUPS
 from mmpa.core.geometry import Array, T_to_vec6
 from mmpa.robot.description import DHParameters, RobotDescription, default_robot
-from mmpa.robot.robot_file import save_robot
+from mmpa.robot.robot_file import load_robot, robot_backend, robot_to_yaml, save_robot
 
 __all__ = [
     "hand_eye_yaml",
@@ -81,10 +81,13 @@ def write_robot_file(
     path: str | Path,
     dh: DHParameters | None = None,
     robot: RobotDescription | None = None,
+    robot_file: str | Path | None = None,
 ) -> Path:
     """``robot`` (default: the robot in use, ``mmpa --robot FILE``, else the twin's) with the
     calibrated ``camera.T_flange_camera`` and, when given, the calibrated arm kinematics
-    ``dh``, written as a robot file: the next run takes it with ``mmpa --robot PATH``."""
+    ``dh``, written as a robot file: the next run takes it with ``mmpa --robot PATH``.
+    ``robot_file``: the robot file of a hardware robot, whose ``frames`` and ``backend``
+    sections the written file keeps (so it drives the same robot)."""
 
     robot = robot or default_robot()
     vec = tuple(float(v) for v in T_to_vec6(T_flange_camera))
@@ -92,7 +95,16 @@ def write_robot_file(
     updates: dict[str, Any] = {"camera": camera.model_dump()}
     if dh is not None:
         updates["arm"] = robot.arm.model_copy(update={"dh": dh}).model_dump()
-    return save_robot(robot.with_updates(**updates), path)
+    calibrated = robot.with_updates(**updates)
+    if robot_file is None:
+        return save_robot(calibrated, path)
+    frames, backend = load_robot(robot_file)[1], robot_backend(robot_file)
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(robot_to_yaml(calibrated, frames, backend=backend), encoding="utf-8")
+    tmp.replace(p)
+    return p
 
 
 def write_robot_file_lidar(mount: Array, path: Path) -> Path:

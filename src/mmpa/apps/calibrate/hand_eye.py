@@ -39,8 +39,9 @@ from mmpa.missions.hand_eye import (
     HandEyeProcedureResult,
     calibrate_hand_eye_on_robot,
 )
+from mmpa.robot.description import RobotDescription
 
-__all__ = ["HandEyeConfig", "run_hand_eye"]
+__all__ = ["HandEyeConfig", "run_hand_eye", "write_hand_eye"]
 
 
 class HandEyeConfig(HandEyeProcedureConfig):
@@ -99,11 +100,18 @@ def _calibrate(
     )
 
 
-def _write(
-    out: Path, cfg: HandEyeConfig, proc: HandEyeProcedureResult, summary: dict[str, Any]
+def write_hand_eye(
+    out: Path,
+    cfg: HandEyeProcedureConfig,
+    proc: HandEyeProcedureResult,
+    summary: dict[str, Any],
+    robot: RobotDescription | None = None,
+    robot_file: Path | None = None,
 ) -> None:
     """``summary.json``, ``hand_eye.yaml``, ``robot.yaml`` (its path joins ``summary``, after
-    the JSON is written) and, for ``joint``, ``calibration.conf``."""
+    the JSON is written) and, for ``joint``, ``calibration.conf``; ``robot`` and
+    ``robot_file``: a hardware robot's description and robot file (its frames and backend
+    kept, :func:`~mmpa.apps.calibrate.files.write_robot_file`)."""
     out.mkdir(parents=True, exist_ok=True)
     write_summary(out, summary)
     joint = proc.joint
@@ -112,9 +120,10 @@ def _write(
             proc.T_flange_camera, proc.method, dh=joint.dh if cfg.method == "joint" else None
         )
     )
-    summary["robot_file"] = str(
-        write_robot_file(proc.T_flange_camera, out / "robot.yaml", dh=proc.dh)
+    path = write_robot_file(
+        proc.T_flange_camera, out / "robot.yaml", dh=proc.dh, robot=robot, robot_file=robot_file
     )
+    summary["robot_file"] = str(path)
     if cfg.method == "joint":
         (out / "calibration.conf").write_text(ur_calibration_conf(joint.deltas))
 
@@ -132,5 +141,5 @@ def _run(
     fk_eval = (cfg.fk_eval_configurations, cfg.seed)
     summary = hand_eye_summary(world, cfg, cfg.site, fk_eval, proc, truth, t0)
     if out is not None:
-        _write(Path(out), cfg, proc, summary)
+        write_hand_eye(Path(out), cfg, proc, summary)
     return summary
