@@ -52,6 +52,7 @@ __all__ = [
     "bag_recorder",
     "make_button",
     "person_recorder",
+    "teach_on_hardware",
     "teach_on_robot",
 ]
 
@@ -193,3 +194,49 @@ def teach_on_robot(
         "path_seconds": round(float(task.path.t[-1]), 2),
         "rate_hz": round(task.path.rate_hz, 3),
     }
+
+
+def teach_on_hardware(
+    robot: MobileManipulator,
+    site: str,
+    name: str,
+    *,
+    kind: str = "robot",
+    from_bag: Path | None = None,
+    sample_q: Array | None = None,
+    rate_hz: float = 50.0,
+    button: str = "key",
+    max_seconds: float = 600.0,
+    db: str | Path | None = None,
+    overwrite: bool = False,
+    say: Callable[[str], None] = print,
+) -> dict:
+    """``mmpa --robot R teach SITE TASK`` on a hardware backend (``kind``): the
+    demonstration from ``from_bag`` or from the person (``button``: ``key`` or ``di:N``,
+    :func:`make_button`), the view at ``sample_q`` (None: where the arm stands), stored as
+    task ``name``; ``say`` tells the person what to do. Returns the summary."""
+    if from_bag is not None:
+        record = bag_recorder(from_bag)
+    else:
+        record = _announced(person_recorder(
+            robot, rate_hz, make_button(button, robot), max_seconds=max_seconds
+        ), button, say)  # fmt: skip
+    _, summary = teach_on_robot(
+        robot, site, name,
+        record=record,
+        q_sample=sample_q, db=db, overwrite=overwrite, robot_id=kind,
+        description=f"taught by a person on the {kind} backend"
+        + (f" from {Path(from_bag).name}" if from_bag is not None else ""),
+    )  # fmt: skip
+    return {"backend": kind, **summary}
+
+
+def _announced(record: Recorder, button: str, say: Callable[[str], None]) -> Recorder:
+    """``record``, telling the person first how to start and stop it."""
+    press = "Enter" if button == "key" else f"the button on digital input {button[3:]}"
+
+    def announced() -> tuple[Array, Array, Array, float]:
+        say(f"guide the arm by hand: press {press} to start recording, {press} again to stop")
+        return record()
+
+    return announced

@@ -32,7 +32,13 @@ from mmpa.robot.interfaces import MobileManipulator, require
 from mmpa.robot.limits import JointLimits
 from mmpa.tasks import Task, TaskStore
 
-__all__ = ["RECORD_MIN_JOINT_HZ", "run_task", "run_task_on_robot", "teach_task"]
+__all__ = [
+    "RECORD_MIN_JOINT_HZ",
+    "run_stored_task_on_robot",
+    "run_task",
+    "run_task_on_robot",
+    "teach_task",
+]
 
 Progress = Callable[[str, float], None]
 
@@ -192,10 +198,30 @@ def run_task_on_robot(
     if not check.limits_ok:
         out["reason"] = f"the adapted path breaks the limits: {check.limits_reason}"
         return out
-    if confirm is not None and not confirm(text):
+    if confirm is not None and not confirm(f"{text}\nmove the arm along the adapted path?"):
         out["reason"] = "not confirmed: nothing moved after the IPE views"
         return out
     return _execute(robot, task, res, out, record_hz)
+
+
+def run_stored_task_on_robot(
+    robot: MobileManipulator,
+    name: str,
+    *,
+    db: str | Path | None = None,
+    kind: str = "robot",
+    confirm: Callable[[str], bool] | None = None,
+    dry_run: Path | None = None,
+    progress: Progress | None = None,
+) -> dict:
+    """``mmpa --robot R run TASK`` on a hardware backend: load task ``name`` from the store
+    and :func:`run_task_on_robot` where the robot stands (a robot with a base: drive it to
+    the task's park pose first, e.g. ``mmpa navigate``; a fixed base: where it is)."""
+    with TaskStore(db) as store:
+        task = store.load(name)
+    out = {"backend": kind}
+    out.update(run_task_on_robot(robot, task, confirm=confirm, dry_run=dry_run, progress=progress))
+    return out
 
 
 def _ipe_summary(res: AutomationResult, out: dict) -> None:

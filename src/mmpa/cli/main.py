@@ -14,7 +14,6 @@ import typer
 from rich.table import Table
 
 from mmpa.cli.common import (
-    DbOpt,
     ExecutorOpt,
     ProfileOpt,
     RayAddressOpt,
@@ -233,84 +232,6 @@ def experiment(
     _show(outcome.summary, f"mmpa experiment {name} -> {out} (report.md, results.csv)")
 
 
-def _mmpa_config(
-    config: Path | None, seed: int, set_: list[str] | None, profile: str | None = None
-):
-    from mmpa.core.config import load_config
-    from mmpa.harness.twin_site import MMPAExperimentConfig
-
-    sets = [*profile_overrides(profile), f"errors.seed={seed}", *(set_ or [])]
-    return load_config(MMPAExperimentConfig, config, sets)
-
-
-@app.command()
-def teach(
-    site: Annotated[str, typer.Argument(help="Site where the task is taught (1 or 2).")],
-    task: Annotated[str, typer.Argument(help="Demonstration to teach (e.g. needle_site1).")],
-    db: DbOpt = None,
-    seed: Annotated[int, typer.Option(help="Robot instance / noise seed.", min=0)] = 0,
-    overwrite: Annotated[bool, typer.Option(help="Replace a stored task of that name.")] = False,
-    profile: ProfileOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-) -> None:
-    """One-shot teaching in the twin (paper 000 §3.1): record a task and store it."""
-    from mmpa.apps.teach_run import teach_task
-
-    try:
-        with console.status(f"teaching {task} at site {site}"):
-            summary = teach_task(
-                site,
-                task,
-                db=db,
-                cfg=_mmpa_config(config, seed, set_, profile),
-                overwrite=overwrite,
-            )
-    except MMPAError as e:
-        fail(e)
-    _show(summary, f"taught {task}")
-
-
-@app.command("run")
-def run_cmd(
-    task: Annotated[str, typer.Argument(help="Name of a stored task.")],
-    site: Annotated[
-        str | None, typer.Option(help="Automation site (default: the task's; 2' for the bump).")
-    ] = None,
-    db: DbOpt = None,
-    seed: Annotated[int, typer.Option(help="Robot instance / noise seed (as taught).", min=0)] = 0,
-    trial: Annotated[int, typer.Option(help="Which parking draw of this seed.", min=0)] = 0,
-    tmma: Annotated[bool, typer.Option(help="Also replay the taught joints (TMMA).")] = False,
-    profile: ProfileOpt = None,
-    config: ConfigOpt = None,
-    set_: SetOpt = None,
-    record: Annotated[
-        Path | None,
-        typer.Option(help="Record the run to this ROS 2 bag (FILE.mcap, or a rosbag2 folder)."),
-    ] = None,
-) -> None:
-    """Automation stage in the twin (paper 000 §3.2): park, IPE, adapted path, execute."""
-    from mmpa.apps.teach_run import run_task
-
-    try:
-        with console.status(f"running {task}"):
-            summary = run_task(
-                task,
-                site=site,
-                db=db,
-                cfg=_mmpa_config(config, seed, set_, profile),
-                trial=trial,
-                tmma=tmma,
-                record=record,
-            )
-    except MMPAError as e:
-        fail(e)
-    _show(summary, f"mmpa run {task}")
-    if not summary.get("executed"):
-        console.print(f"[yellow]not executed:[/] {summary.get('reason', '')}")
-        raise typer.Exit(1)
-
-
 from mmpa.cli import bags as _bags  # noqa: E402  (registers localize)
 from mmpa.cli import calibrate as _calibrate  # noqa: E402  (registers calibrate)
 from mmpa.cli import datasets as _datasets  # noqa: E402  (registers convert, benchmark)
@@ -320,6 +241,7 @@ from mmpa.cli import register as _register  # noqa: E402  (registers register)
 from mmpa.cli import robot as _robot  # noqa: E402  (registers robot)
 from mmpa.cli import ros2 as _ros2  # noqa: E402  (registers the ros2 group)
 from mmpa.cli import sweep as _sweep  # noqa: E402  (registers sweep)
+from mmpa.cli import tasks as _tasks  # noqa: E402  (registers teach, run)
 
 _navigation.register(app)
 _bags.register(app)
@@ -330,6 +252,7 @@ _sweep.register(app)
 _datasets.register(app)
 _ros2.register(app)
 _grasp.register(app)
+_tasks.register(app)
 
 
 def main() -> None:

@@ -1,4 +1,6 @@
-"""``mmpa tasks``: list, show, export, import and delete taught tasks (mmpa.tasks)."""
+"""``mmpa tasks``: list, show, export, import and delete taught tasks (mmpa.tasks); ``mmpa
+teach`` and ``mmpa run``: teach a task and run it, in the twin or on the robot of ``mmpa
+--robot R`` (a ros2 or direct backend: cli.hardware)."""
 
 from __future__ import annotations
 
@@ -9,8 +11,9 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from mmpa.cli.common import DbOpt, console, fail
-from mmpa.core.errors import MMPAError
+from mmpa.cli.common import DbOpt, ProfileOpt, console, fail, profile_overrides
+from mmpa.cli.hardware import YesOpt, backend_in_use, confirmer, open_hardware
+from mmpa.core.errors import InvalidInputError, MMPAError
 
 tasks_app = typer.Typer(
     help="Taught tasks: list, show, export, import, delete.", no_args_is_help=True
@@ -161,3 +164,146 @@ def delete(
     except MMPAError as e:
         fail(e)
     console.print(f"deleted task {name!r}", highlight=False)
+
+
+# ---------------------------------------------------------------------- teach and run
+ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="YAML config file.")]
+SetOpt = Annotated[list[str] | None, typer.Option("--set", help="Override: key=value (repeat).")]
+
+
+def _mmpa_config(config: Path | None, seed: int, set_: list[str] | None, profile: str | None):
+    from mmpa.core.config import load_config
+    from mmpa.harness.twin_site import MMPAExperimentConfig
+
+    sets = [*profile_overrides(profile), f"errors.seed={seed}", *(set_ or [])]
+    return load_config(MMPAExperimentConfig, config, sets)
+
+
+def _show(summary: dict, title: str) -> None:
+    t = Table(title=title, show_header=False)
+    for k, v in summary.items():
+        t.add_row(k, str(v))
+    console.print(t)
+
+
+def _joints(text: str | None) -> np.ndarray | None:
+    """``--sample-q``: six comma-separated joint angles (rad)."""
+    if text is None:
+        return None
+    try:
+        q = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        q = np.zeros(0)
+    if q.shape != (6,) or not np.all(np.isfinite(q)):
+        fail(InvalidInputError(f"--sample-q takes 6 comma-separated angles in rad, got {text!r}"))
+    return q
+
+
+def teach(
+    site: Annotated[str, typer.Argument(help="Site where the task is taught (1 or 2).")],
+    task: Annotated[str, typer.Argument(help="Task name (twin: its demonstration).")],
+    db: DbOpt = None,
+    seed: Annotated[int, typer.Option(help="Twin: robot instance / noise seed.", min=0)] = 0,
+    overwrite: Annotated[bool, typer.Option(help="Replace a stored task of that name.")] = False,
+    from_bag: Annotated[
+        Path | None, typer.Option(help="Hardware: the demonstration's /joint_states from a bag.")
+    ] = None,
+    sample_q: Annotated[
+        str | None,
+        typer.Option(help="Hardware: sampling joints, 6 rad comma-separated (default: as is)."),
+    ] = None,
+    rate: Annotated[float, typer.Option(help="Hardware: path rate (Hz).", min=1.0)] = 50.0,
+    button: Annotated[
+        str, typer.Option(help="Hardware: start/stop by 'key' (Enter) or 'di:N' (input N).")
+    ] = "key",
+    max_seconds: Annotated[
+        float, typer.Option(help="Hardware: longest demonstration (s).", min=1.0)
+    ] = 600.0,
+    profile: ProfileOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """One-shot teaching (paper 000 §3.1): record a task and store it. The twin (default):
+    its scripted operator plays the demonstration TASK. `mmpa --robot R` on a ros2 / direct
+    robot: a person guides the arm (UR freedrive, or the pendant while /joint_states is
+    read), started and stopped by --button; or --from-bag replays a recorded one. The park
+    pose is the identity on a fixed base."""
+    from mmpa.apps.teach_person import teach_on_hardware
+    from mmpa.apps.teach_run import teach_task
+
+    path, backend = backend_in_use()
+    try:
+        if backend.hardware:
+            with open_hardware(path) as robot:
+                summary = teach_on_hardware(
+                    robot, site, task, kind=backend.kind, from_bag=from_bag,
+                    sample_q=_joints(sample_q), rate_hz=rate, button=button,
+                    max_seconds=max_seconds, db=db, overwrite=overwrite, say=console.print,
+                )  # fmt: skip
+        else:
+            if from_bag is not None:
+                fail(InvalidInputError("--from-bag teaches on a ros2 / direct robot (--robot)"))
+            with console.status(f"teaching {task} at site {site}"):
+                cfg = _mmpa_config(config, seed, set_, profile)
+                summary = teach_task(site, task, db=db, cfg=cfg, overwrite=overwrite)
+    except MMPAError as e:
+        fail(e)
+    _show(summary, f"taught {task}")
+
+
+def run_cmd(
+    task: Annotated[str, typer.Argument(help="Name of a stored task.")],
+    site: Annotated[
+        str | None,
+        typer.Option(help="Twin: automation site (default: the task's; 2' for the bump)."),
+    ] = None,
+    db: DbOpt = None,
+    seed: Annotated[int, typer.Option(help="Twin: robot instance / noise seed.", min=0)] = 0,
+    trial: Annotated[int, typer.Option(help="Twin: which parking draw of this seed.", min=0)] = 0,
+    tmma: Annotated[bool, typer.Option(help="Twin: also replay the taught joints.")] = False,
+    yes: YesOpt = False,
+    dry_run: Annotated[
+        Path | None,
+        typer.Option(help="Hardware: stop before the path; write it and a picture here."),
+    ] = None,
+    profile: ProfileOpt = None,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+    record: Annotated[
+        Path | None,
+        typer.Option(help="Twin: record the run to this ROS 2 bag (FILE.mcap or a folder)."),
+    ] = None,
+) -> None:
+    """Automation stage (paper 000 §3.2): IPE, the adapted path, execute. The twin
+    (default): park with a paper offset, errors against the truth. `mmpa --robot R` on a
+    ros2 / direct robot: from where it stands, the estimate, the path's clearance from the
+    taught one and the limits check are shown and asked about before the arm moves (--yes
+    skips; --dry-run DIR stops there and writes the path and a picture)."""
+    from mmpa.apps.teach_run import run_stored_task_on_robot, run_task
+
+    path, backend = backend_in_use()
+    try:
+        if backend.hardware:
+            with open_hardware(path) as robot:
+                summary = run_stored_task_on_robot(
+                    robot, task, db=db, kind=backend.kind,
+                    confirm=confirmer(yes, backend), dry_run=dry_run,
+                )  # fmt: skip
+        else:
+            with console.status(f"running {task}"):
+                cfg = _mmpa_config(config, seed, set_, profile)
+                summary = run_task(
+                    task, site=site, db=db, cfg=cfg, trial=trial, tmma=tmma, record=record
+                )
+    except MMPAError as e:
+        fail(e)
+    _show(summary, f"mmpa run {task}")
+    if not summary.get("executed") and not (dry_run is not None and "files" in summary):
+        console.print(f"[yellow]not executed:[/] {summary.get('reason', '')}")
+        raise typer.Exit(1)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``teach`` and ``run`` to the main app."""
+    app.command("teach")(teach)
+    app.command("run")(run_cmd)
