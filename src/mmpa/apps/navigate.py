@@ -1,7 +1,14 @@
-"""``mmpa navigate`` and ``mmpa map export`` on the twin: drive from a site to another on the
-localizer's estimate (the operator's rough pose to start), optionally recorded to a ROS 2 bag;
-write the twin's occupancy map. The summary holds the parking error (truth vs goal), the
-localization error (estimate vs truth) and the localizer's health over the drive."""
+"""``mmpa navigate`` and ``mmpa map export``: drive from a site to another on the localizer's
+estimate (the operator's rough pose to start), optionally recorded to a ROS 2 bag; write the
+twin's occupancy map. The summary holds the parking error (truth vs goal), the localization
+error (estimate vs truth) and the localizer's health over the drive.
+
+:func:`navigate_twin` drives the twin in this process; :func:`navigate_robot` drives the robot
+of a robot file's hardware backend (``mmpa --robot R.yaml navigate``,
+:func:`mmpa.apps.robots.open_robot`) with the same mission: the base over its velocity topic,
+the map from the robot (``/map`` and ``/reflectors``), localized by mmpa's localizer over its
+scans and odometry, or by the robot's own running localizer (``backend.ros2.topics.pose``).
+The truth is known only where the robot publishes it (the twin node's ``/truth/base_pose``)."""
 
 from __future__ import annotations
 
@@ -10,20 +17,34 @@ from pathlib import Path
 
 import numpy as np
 
+from mmpa.apps.robots import RobotLocalizer, open_robot, robot_description
 from mmpa.backends.bag import BagWriter, Recorder
 from mmpa.backends.bag.record import ARM_RATE_HZ
 from mmpa.backends.twin.error_model import ErrorModelConfig
 from mmpa.backends.twin.operator import rough_initial_pose
+from mmpa.backends.twin.scene import load_scene
 from mmpa.backends.twin.twin_maps import twin_map, twin_nav_map
 from mmpa.backends.twin.world import SimWorld
 from mmpa.core.config import load_config
+from mmpa.core.errors import ConfigError, InvalidInputError, UnknownNameError
+from mmpa.core.geometry import Array, T_to_se2
 from mmpa.harness.twin_localization import twin_localizer
-from mmpa.localization.settings import LocalizationConfig, initial_covariance
+from mmpa.localization.localizer import Localizer
+from mmpa.localization.settings import LocalizationConfig, build_localizer, initial_covariance
 from mmpa.maps.map_server import replace_reflectors, save_map
 from mmpa.missions.navigate import NavigateConfig, NavigationResult, navigate
 from mmpa.navigation.planner import CostMap
+from mmpa.robot.interfaces import require
+from mmpa.robot.robot_file import robot_backend
 
-__all__ = ["export_twin_map", "health_summary", "navigate_twin", "twin_errors"]
+__all__ = [
+    "export_twin_map",
+    "health_summary",
+    "navigate_robot",
+    "navigate_twin",
+    "site_or_pose",
+    "twin_errors",
+]
 
 
 def twin_errors(seed: int, profile: str | None) -> ErrorModelConfig:
@@ -43,8 +64,14 @@ def health_summary(trace: dict) -> dict:
     return out
 
 
+def _mm(x: float, scale: float = 1000.0, digits: int = 2) -> float | None:
+    """``x * scale`` rounded, or None where the truth is unknown (NaN)."""
+    return round(scale * float(x), digits) if np.isfinite(x) else None
+
+
 def _summary(res: NavigationResult, start: str, to: str, method: str, profile: str) -> dict:
     e = res.localization_error
+    deg = float(np.rad2deg(1.0))
     summary = {
         "from": start,
         "to": to,
@@ -53,10 +80,10 @@ def _summary(res: NavigationResult, start: str, to: str, method: str, profile: s
         "reached": res.reached,
         "corrections": res.corrections,
         "sim_seconds": round(res.sim_time, 2),
-        "parking_error_xy_mm": round(1000 * res.parking_error_xy, 2),
-        "parking_error_yaw_deg": round(float(np.rad2deg(res.parking_error_yaw)), 3),
-        "localization_error_xy_mm": round(1000 * float(np.hypot(e[0], e[1])), 2),
-        "localization_error_yaw_deg": round(float(np.rad2deg(abs(e[2]))), 3),
+        "parking_error_xy_mm": _mm(res.parking_error_xy),
+        "parking_error_yaw_deg": _mm(res.parking_error_yaw, deg, 3),
+        "localization_error_xy_mm": _mm(float(np.hypot(e[0], e[1]))),
+        "localization_error_yaw_deg": _mm(abs(e[2]), deg, 3),
     }
     summary.update(health_summary(res.trace))
     if not res.reached:
@@ -119,6 +146,72 @@ def navigate_twin(
     if bag is not None:
         summary["bag"] = str(record)
         summary["bag_messages"] = sum(bag.counts.values())
+    return summary
+
+
+def site_or_pose(text: str) -> Array:
+    """A goal or start: a site of the twin's scene (its park pose) or ``"x,y,theta"`` (m, m,
+    rad in ``map``)."""
+    parts = text.split(",")
+    if len(parts) == 3:
+        try:
+            pose = np.array([float(p) for p in parts])
+        except ValueError:
+            pose = np.full(3, np.nan)
+        if not np.all(np.isfinite(pose)):
+            raise InvalidInputError(f"a pose is x,y,theta (finite numbers), got {text!r}")
+        return pose
+    try:
+        return load_scene().site(text).pose2d
+    except UnknownNameError as e:
+        raise InvalidInputError(f"{e}; or give a pose x,y,theta (m, m, rad in map)") from None
+
+
+def _robot_localizer(
+    robot: object, grid: object, st: LocalizationConfig, start: str, seed: int, mount: Array
+) -> tuple[Localizer, str]:
+    """The robot's own localizer (``topics.pose``) when it has one, else mmpa's of
+    ``st.method`` started at ``start`` (the operator's rough pose); and its name."""
+    source = getattr(robot, "pose", None)
+    if source is not None:
+        return RobotLocalizer(source), "robot"
+    loc = build_localizer(st, grid, mount, np.random.default_rng(seed))  # type: ignore[arg-type]
+    loc.initialize(site_or_pose(start), initial_covariance(st))
+    return loc, st.method
+
+
+def navigate_robot(
+    robot_file: Path,
+    start: str,
+    to: str,
+    settings: LocalizationConfig | None = None,
+    seed: int = 0,
+    timeout: float = 120.0,
+    reflector_map: Path | None = None,
+) -> dict:
+    """Drive the robot of ``robot_file`` (a hardware backend) to ``to`` (a site of the scene
+    or ``x,y,theta``) on the localization estimate (module docstring): mmpa's localizer of
+    ``settings`` (particles from ``seed``) starts at ``start`` (where the robot stands,
+    roughly); the map's reflectors replaced by ``reflector_map``'s when given. ``timeout``:
+    s of the robot's clock. Returns the summary (truth-based errors None without a truth)."""
+    st = settings or LocalizationConfig()
+    goal = site_or_pose(to)
+    mount = T_to_se2(robot_description(robot_file).lidar.T_base_link_laser)
+    devices = ("clock", "odometry", "base", "lidar")
+    with open_robot(robot_file, devices) as robot:
+        require(robot, "base", "odometry", "lidar", mission="navigate")
+        served = getattr(robot, "occupancy_grid", None)
+        if served is None:
+            raise ConfigError("this robot serves no map: navigate needs one (/map)")
+        grid, refl_src = served()
+        if reflector_map is not None:
+            grid, refl_src = replace_reflectors(grid, reflector_map), str(reflector_map)
+        loc, method = _robot_localizer(robot, grid, st, start, seed, mount)
+        truth = robot.truth()  # type: ignore[attr-defined]
+        res = navigate(robot, loc, grid, goal, NavigateConfig(timeout=timeout), truth=truth)
+    summary = _summary(res, start, to, method, robot_backend(robot_file).kind)
+    summary["reflectors"] = refl_src
+    summary["truth"] = "/truth/base_pose" if truth is not None else "none"
     return summary
 
 

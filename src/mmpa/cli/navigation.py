@@ -1,4 +1,5 @@
-"""``mmpa navigate --to SITE`` and ``mmpa map export``: localization and navigation in the twin."""
+"""``mmpa navigate --to SITE`` and ``mmpa map export``: localization and navigation in the twin,
+or on the robot of ``mmpa --robot FILE`` (a ``ros2`` backend)."""
 
 from __future__ import annotations
 
@@ -26,15 +27,25 @@ def _errors(seed: int, profile: str | None):
 
 def navigate_cmd(
     ctx: typer.Context,
-    to: Annotated[str, typer.Option("--to", help="Goal site (e.g. 1, 2).")],
-    start: Annotated[str, typer.Option("--from", help="Start site.")] = "0",
+    to: Annotated[
+        str, typer.Option("--to", help="Goal site (e.g. 1, 2), or x,y,theta on a robot.")
+    ],
+    start: Annotated[
+        str,
+        typer.Option(
+            "--from", help="Start site; on a robot: where it stands roughly (site or x,y,theta)."
+        ),
+    ] = "0",
     method: MethodOpt = None,
     seed: Annotated[int, typer.Option(help="Robot instance / noise seed.", min=0)] = 0,
     out: Annotated[
         Path | None, typer.Option(help="Write summary.json and config.yaml here.")
     ] = None,
     timeout: Annotated[
-        float, typer.Option(help="Simulated seconds.", callback=in_range(0.0, 86400.0))
+        float,
+        typer.Option(
+            help="Seconds of the robot's clock (simulated).", callback=in_range(0.0, 86400.0)
+        ),
     ] = 120.0,
     profile: ProfileOpt = None,
     record: Annotated[
@@ -54,23 +65,34 @@ def navigate_cmd(
 ) -> None:
     """Drive the twin from a site to ``--to`` on the localization estimate (started from the
     operator's rough pose); print the parking error (truth vs goal) and the localization error
-    (estimate vs truth) at the end. Localization settings, lowest first: defaults, the
-    robot file's localization section, --config, the options, --set."""
+    (estimate vs truth) at the end. With ``mmpa --robot R.yaml`` whose backend is ``ros2``,
+    drive that robot over ROS 2 instead (its /map, /scan, /odom, /cmd_vel; docs/ros2.md).
+    Localization settings, lowest first: defaults, the robot file's localization section,
+    --config, the options, --set."""
     from mmpa.apps.localization_settings import LocalizationConfig, load_localization_config
-    from mmpa.apps.navigate import navigate_twin
+    from mmpa.apps.navigate import navigate_robot, navigate_twin
     from mmpa.core.config import save_config
+    from mmpa.core.errors import ConfigError
+    from mmpa.robot.robot_file import robot_backend
 
     try:
         options = {"method": method, "initial_cov": parse_cov3(initial_cov)}
         st = load_localization_config(
             LocalizationConfig, robot_file(ctx), config, options, set_ or []
         )
-        errors = _errors(seed, profile)
         refl_map = reflectors or robot_reflector_map(ctx)
-        with console.status(f"navigating site {start} -> site {to} ({st.method})"):
-            summary = navigate_twin(
-                errors, start, to, st.method, seed, timeout, refl_map, record, settings=st
-            )
+        path = robot_file(ctx)
+        if path is not None and robot_backend(path).kind != "twin":
+            if record is not None:
+                raise ConfigError("--record is for the twin: record a robot's topics with ros2 bag")
+            with console.status(f"navigating {start} -> {to} over ROS 2 ({st.method})"):
+                summary = navigate_robot(path, start, to, st, seed, timeout, refl_map)
+        else:
+            errors = _errors(seed, profile)
+            with console.status(f"navigating site {start} -> site {to} ({st.method})"):
+                summary = navigate_twin(
+                    errors, start, to, st.method, seed, timeout, refl_map, record, settings=st
+                )
     except MMPAError as e:
         fail(e)
     if out is not None:
