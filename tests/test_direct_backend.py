@@ -84,3 +84,18 @@ def test_connection_failures_name_the_device(tmp_path) -> None:
         direct.open_direct(BackendConfig(), ROBOT),
     ):
         pass
+
+
+def test_open_robot_opens_the_direct_kind(tmp_path, monkeypatch) -> None:
+    """The mission commands' open_robot (apps.robots) hands a direct robot file to
+    open_direct."""
+    robots = pytest.importorskip("mmpa.apps.robots", reason="the hardware robots module")
+    from mmpa.robot.robot_file import robot_to_yaml
+
+    fake = FakeRTDE(HOME)
+    monkeypatch.setattr(direct, "connect_rtde", lambda host, f: (fake, fake))
+    path = tmp_path / "robot.yaml"
+    path.write_text(robot_to_yaml(ROBOT, backend=_cfg(ur_host="10.0.0.7", camera=False)))
+    with robots.open_robot(path) as robot:
+        assert isinstance(robot.arm, URArm) and robot.camera is None
+        np.testing.assert_allclose(robot.arm.joint_positions(), HOME)
