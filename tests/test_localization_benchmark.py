@@ -266,7 +266,7 @@ def test_set_reaches_the_localizer(room_bag, tmp_path) -> None:
     a2, _, _ = run("a2")
     np.testing.assert_array_equal(a, a2)  # same settings, same seed: the same run
     assert np.abs(a - b).max() > 1e-6
-    assert ca["amcl"]["laser_model_type"] == "likelihood_field"
+    assert ca["amcl"]["laser_model_type"] == "likelihood_field_prob"  # the default
     assert cb["amcl"]["laser_model_type"] == "beam" and cb["amcl"]["max_particles"] == 600
     _, sh, ch = run("h", "--set", "method=hector")
     assert sh["method"] == "hector" and ch["method"] == "hector"

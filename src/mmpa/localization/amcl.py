@@ -8,7 +8,8 @@ one module per stage, composed by the thin class :class:`AMCL`:
 - sensor: the laser model picked by ``laser_model_type`` from :data:`LASER_MODELS`: the
   likelihood field (``z_hit``, ``z_rand``, ``sigma_hit``, ``max_beams``,
   ``laser_likelihood_max_dist``; Nav2's ``p = 1 + sum pz^3``,
-  :mod:`mmpa.localization.likelihood_field`) or the beam model (``z_hit``, ``z_short``,
+  :mod:`mmpa.localization.likelihood_field`), its product form ``likelihood_field_prob``
+  (``p = prod pz``, the default) or the beam model (``z_hit``, ``z_short``,
   ``z_max``, ``z_rand``, ``lambda_short``; ray casting in the grid,
   :mod:`mmpa.localization.beam_model`);
 - resampling: KLD-sampling (``min_particles``, ``max_particles``, ``pf_err``, ``pf_z``; Nav2's
@@ -16,7 +17,9 @@ one module per stage, composed by the thin class :class:`AMCL`:
   low-variance resampling and recovery by random particles (``recovery_alpha_slow`` /
   ``recovery_alpha_fast``): :mod:`mmpa.localization.resampling`;
 - global localization (uniform over free space), initial pose with covariance, and the update
-  thresholds ``update_min_d`` / ``update_min_a``.
+  thresholds ``update_min_d`` / ``update_min_a``;
+- improvement (``scan_refine``, :mod:`mmpa.localization.refine`): a scan-to-map match of the
+  predicted cloud's estimate draws part of the particles (a defensive mixture proposal).
 
 The estimate is the weighted mean of the heaviest cluster (particles grouped by their
 histogram bins, as Nav2 does, on a circular heading axis: :func:`cluster_labels`), with its
@@ -47,6 +50,8 @@ from mmpa.localization.likelihood_field import (
 )
 from mmpa.localization.motion import compose_odom, moved_enough, odometry_delta, sample_motion
 from mmpa.localization.pose import PoseEstimate, check_scan, finite_cov, finite_pose, wrap
+from mmpa.localization.proposal import defensive_mixture
+from mmpa.localization.refine import Refinement, ScanRefiner
 from mmpa.localization.resampling import (
     cluster_labels,
     cluster_mean,
@@ -124,6 +129,9 @@ class AMCL:
         self.w_fast = 0.0
         self._force_update = True
         self._estimate: PoseEstimate | None = None
+        self.refiner = ScanRefiner(grid, self.laser_pose)
+        self.last_refinement: Refinement | None = None  # None: not tried at the last update
+        self.refinements = 0  # accepted matches so far
 
     # --- initialization -----------------------------------------------------------------
     def set_initial_pose(self, pose: Array, cov: Array | None = None) -> None:
@@ -237,6 +245,15 @@ class AMCL:
             self._table_key = key
         return self._table
 
+    def likelihood_field_prob(self, particles: Array, ranges: Array, angles: Array) -> Array:
+        """Nav2 ``LikelihoodFieldModelProb`` without beam skipping: ``p = prod_b pz_b``,
+        ``pz = z_hit exp(-d^2 / (2 sigma_hit^2)) + z_rand / range_max``, ``d`` the distance
+        from the endpoint to the nearest occupied cell's center (Nav2's field, but
+        bilinearly interpolated: smooth in the pose; :meth:`log_likelihood_field`). Returned
+        divided by the largest (the product of 60 beams underflows): (N,) in (0, 1]."""
+        ll = self.log_likelihood_field(particles, ranges, angles, self.cfg.sigma_hit)
+        return np.exp(ll - ll.max())
+
     def raycast(self, particles: Array, angles: Array, max_range: float) -> Array:
         """Expected ranges (N, B) by sphere tracing (:func:`~.beam_model.raycast`);
         ``max_range`` where no occupied cell is hit."""
@@ -301,12 +318,40 @@ class AMCL:
         if not (force or self._should_update(odom_pose)):
             return self._current(updated=False)
         self.predict(odom_pose)
-        p = self.measurement_weights(self.particles, scan)
-        self._apply_weights(p)
+        if not (self.cfg.scan_refine and self._refined_weights(scan)):
+            p = self.measurement_weights(self.particles, scan)
+            self._apply_weights(p)
         self._resample_count += 1
         if self._resample_count % self.cfg.resample_interval == 0:
             self.resample()
         return self._finish_update(odom_pose)
+
+    def _refined_weights(self, scan: LaserScan) -> bool:
+        """The scan refinement (:mod:`mmpa.localization.refine`): match the predicted cloud's
+        estimate; if accepted, draw ``refine_fraction`` of the particles around the match and
+        weight all by the laser model times the mixture's importance factor. False (nothing
+        changed) when the cloud is not one tight cluster or the match is refused."""
+        c = self.cfg
+        self.last_refinement = None
+        start, cov = self._cluster_mean()
+        if np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0)) > c.refine_max_sd:
+            return False
+        ref = self.refiner.match(start, scan)
+        self.last_refinement = ref
+        if not ref.ok:
+            return False
+        self.refinements += 1
+        q = c.refine_inflate**2 * ref.cov + np.diag(
+            [c.refine_floor_xy**2, c.refine_floor_xy**2, c.refine_floor_theta**2]
+        )
+        x, log_f = defensive_mixture(
+            self.particles, self.weights, ref.pose, q, c.refine_fraction, self.rng
+        )
+        p = self.measurement_weights(x, scan)
+        self.particles = x
+        self.weights = np.full(len(x), 1.0 / len(x))
+        self._apply_weights(p * np.exp(log_f - log_f.max()))
+        return True
 
     def _finish_update(self, odom_pose: Array) -> PoseEstimate:
         """Bookkeeping after a filter update at ``odom_pose``; the new estimate."""
@@ -387,5 +432,6 @@ class AMCL:
 #: The laser models by ``AMCLConfig.laser_model_type``: one interface (:data:`LaserModel`).
 LASER_MODELS: dict[str, LaserModel] = {
     "likelihood_field": AMCL.likelihood_field,
+    "likelihood_field_prob": AMCL.likelihood_field_prob,
     "beam": AMCL.beam_model,
 }

@@ -40,13 +40,6 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array
-from mmpa.localization.amcl import (
-    PoseEstimate,
-    check_scan,
-    compose_odom,
-    finite_cov,
-    finite_pose,
-)
 from mmpa.localization.hector_match import (
     DistanceLevels,
     Fit,
@@ -56,6 +49,8 @@ from mmpa.localization.hector_match import (
     levenberg_marquardt,
     move,
 )
+from mmpa.localization.motion import compose_odom
+from mmpa.localization.pose import PoseEstimate, check_scan, finite_cov, finite_pose
 from mmpa.maps.occupancy import OccupancyGrid
 from mmpa.robot.interfaces import LaserScan
 

@@ -46,7 +46,7 @@ import numpy as np
 from scipy import ndimage
 
 from mmpa.core.geometry import Array
-from mmpa.localization.amcl import _wrap
+from mmpa.localization.pose import wrap as _wrap
 
 __all__ = [
     "DistanceLevels",

@@ -6,6 +6,9 @@ are drawn before they are weighted.
   the fix is;
 - :func:`refine_proposal`: two-stage (adaptive) importance sampling around the first stage's
   posterior, with deterministic-mixture weights (Owen and Zhou 2000);
+- :func:`defensive_mixture`: a share of the particles drawn from a Gaussian (AMCL's scan
+  refinement: around a scan match), the rest resampled from the predicted cloud, with the
+  importance weights of that mixture (defensive importance sampling, Hesterberg 1995);
 - :func:`gaussian_fit` and :func:`log_gauss`, the Gaussians these use.
 
 Units: m, rad; particles ``[x, y, theta]`` in ``map`` (heading differences wrapped).
@@ -20,7 +23,13 @@ import numpy as np
 from mmpa.core.geometry import Array
 from mmpa.localization.pose import wrap
 
-__all__ = ["gaussian_fit", "log_gauss", "mixture_proposal", "refine_proposal"]
+__all__ = [
+    "defensive_mixture",
+    "gaussian_fit",
+    "log_gauss",
+    "mixture_proposal",
+    "refine_proposal",
+]
 
 
 def mixture_proposal(
@@ -98,3 +107,42 @@ def refine_proposal(
     lw = ll + lp - lmix
     w = np.exp(lw - lw.max())
     return x, w / w.sum()
+
+
+def defensive_mixture(
+    particles: Array,
+    weights: Array,
+    mean: Array,
+    cov: Array,
+    fraction: float,
+    rng: np.random.Generator,
+    floor: Array = (1e-2, 1e-2, 1e-2),
+) -> tuple[Array, Array]:
+    """Particles from the mixture ``a p + (1 - a) q`` and their log importance factors.
+
+    ``p``: the predicted cloud ``particles`` (N, 3) with normalized ``weights`` (N,), of
+    which ``n1 = N - round(fraction N)`` are drawn by low-variance resampling (unweighted
+    draws from ``p``); ``q = N(mean, cov)``: ``n2 = round(fraction N)`` draws. ``a = n1 /
+    N``. Returns the N particles (the ``p`` draws first) and ``log(p(x) / (a p(x) + (1 - a)
+    q(x)))`` per particle, ``p`` approximated by its Gaussian fit (covariance + diag(
+    ``floor^2``), so that a collapsed cloud keeps a density): multiplied by the measurement
+    likelihood, these are the importance weights of the posterior ``p(z | x) p(x)``."""
+    n = particles.shape[0]
+    n2 = round(fraction * n)
+    n1 = n - n2
+    w = np.asarray(weights, float) / float(np.sum(weights))
+    cdf = np.cumsum(w)
+    u = (rng.uniform() + np.arange(n1)) / max(n1, 1)
+    keep = np.minimum(np.searchsorted(cdf / cdf[-1], u), n - 1)
+    cq = 0.5 * (cov + cov.T)
+    x2 = rng.standard_normal((n2, 3)) @ np.linalg.cholesky(cq).T + mean
+    x2[:, 2] = wrap(x2[:, 2])
+    x = np.concatenate([particles[keep], x2])
+    mp, cp = gaussian_fit(particles, w)
+    cp = cp + np.diag(np.asarray(floor, float) ** 2)
+    lp = log_gauss(x, mp, cp)
+    if n2 == 0:
+        return x, np.zeros(n)
+    lq = log_gauss(x, np.asarray(mean, float), cq)
+    lmix = np.logaddexp(np.log(n1 / n) + lp, np.log(n2 / n) + lq) if n1 else lq
+    return x, lp - lmix

@@ -3,7 +3,8 @@
 :class:`LocalizationConfig` holds the method and the settings of every method: ``amcl``
 (:class:`~mmpa.localization.config.AMCLConfig`, Nav2's ``amcl`` parameter names: ``alpha1``,
 ``laser_model_type``, ``max_particles``, ``z_hit``, ``sigma_hit``, ``update_min_d``, ...; the
-AMCL of ``amcl``, ``enhanced``, ``enhanced-paper`` and ``tamcl``), ``enhanced``
+AMCL of ``amcl``, and the fields it changes of the AMCL inside ``enhanced``, ``enhanced-paper``
+and ``tamcl``, which is otherwise Nav2's: :func:`amcl_of`), ``enhanced``
 (:class:`~mmpa.localization.config.EnhancedConfig`, paper 001 Algorithm 1; its AMCL is
 ``amcl``, so ``enhanced.amcl`` is refused), ``hector``
 (:class:`~mmpa.localization.hector.HectorConfig`) and ``initial_cov``, the diagonal of the
@@ -32,6 +33,7 @@ __all__ = [
     "GLOBAL_METHODS",
     "EnhancedSection",
     "LocalizationConfig",
+    "amcl_of",
     "build_localizer",
     "initial_covariance",
     "start_localizer",
@@ -97,6 +99,19 @@ def initial_covariance(cfg: LocalizationConfig, recorded: Array | None = None) -
     return None
 
 
+def amcl_of(cfg: LocalizationConfig) -> AMCLConfig:
+    """The AMCL settings of ``cfg.method``: ``cfg.amcl`` for ``amcl``; for the methods with
+    an AMCL inside (enhanced, tamcl) Nav2's AMCL (:meth:`AMCLConfig.paper`, as paper 001 ran
+    it) with the fields where ``cfg.amcl`` differs from AMCL's defaults on top (so that a
+    saved ``config.yaml``, which writes every field, reruns alike): the scan refinement and
+    its laser model are AMCL's defaults, not those of the reflector methods."""
+    if cfg.method == "amcl":
+        return cfg.amcl
+    base = AMCLConfig()
+    given = {k: v for k, v in cfg.amcl if v != getattr(base, k)}
+    return AMCLConfig.paper().model_copy(update=given)
+
+
 def build_localizer(
     cfg: LocalizationConfig,
     grid: OccupancyGrid,
@@ -111,7 +126,7 @@ def build_localizer(
         grid,
         laser_pose,
         rng,
-        amcl=cfg.amcl,
+        amcl=amcl_of(cfg),
         enhanced=cfg.enhanced,
         hector=cfg.hector,
     )

@@ -105,7 +105,13 @@ class Config(TwinLocalization):
     kidnap_trials: int = Field(3, ge=0)
     kidnap_site: str = "2"
     kidnap_duration: float = Field(30.0, gt=0)
-    kidnap_amcl: AMCLConfig = AMCLConfig(recovery_alpha_slow=0.001, recovery_alpha_fast=0.1)
+    kidnap_amcl: AMCLConfig = AMCLConfig.paper().model_copy(
+        update={"recovery_alpha_slow": 0.001, "recovery_alpha_fast": 0.1}
+    )
+    # the paper's baseline "AMCL [5]" (and the AMCL inside the other methods): Nav2's AMCL as
+    # the paper ran it (AMCLConfig.paper()); mmpa's own defaults (scan refinement,
+    # docs/localization.md "Real logs"): `amcl: {}` in a --config file
+    amcl: AMCLConfig = Field(default_factory=AMCLConfig.paper)
     # the paper's baseline "Hector-SLAM [35]" as published (Kohlbrecher et al. 2011); mmpa's
     # own Hector (distance field, damped steps, a search; docs/localization.md): `hector: {}`
     # in a --config file (HectorConfig's defaults)
@@ -193,7 +199,9 @@ def _trial(
         world.reset(pose2d=start)
         grid = twin_map(world, cfg.resolution)
         rng_k = np.random.default_rng([cfg.seed, k, 7])
-        loc = twin_localizer(world, method, rng_k, grid=grid, mount=mount, hector=cfg.hector)
+        loc = twin_localizer(
+            world, method, rng_k, grid=grid, mount=mount, amcl=cfg.amcl, hector=cfg.hector
+        )
         robot: Any = world
         if record is not None:  # the same trial, observed (mmpa.backends.bag.Recorder)
             label = {"method": method}
