@@ -144,7 +144,7 @@ def test_a_wrong_match_weighs_nothing(room, monkeypatch) -> None:
     a = _track(room, AMCLConfig(), (0.05, 0.05, 0.05))
     assert a.refinements == 1
     assert np.hypot(*(a.estimate().pose[:2] - truth[:2])) < 0.05  # measured 25 mm
-    wrong_xy = truth[:2] + [0.6, 0.0]
+    wrong_xy = truth[:2] + np.array([0.6, 0.0])
     assert np.mean(np.hypot(*(a.particles[:, :2] - wrong_xy).T) < 0.3) < 0.01
 
 
