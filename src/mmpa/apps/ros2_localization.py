@@ -19,6 +19,7 @@ what it waits for and publishes nothing; a scan the library refuses (e.g. an
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -59,6 +60,8 @@ NODE_PARAMS: dict[str, Any] = {
     "seed": 0,  # mmpa: the particle filter's random seed
 }
 THROTTLE_S = 2.0
+#: the methods that need the surveyed reflectors (``reflector_map`` or ``/reflectors``)
+REFLECTOR_METHODS = ("enhanced", "enhanced-paper", "trilateration", "tamcl")
 
 
 @dataclass
@@ -89,7 +92,13 @@ def config_from_params(params: dict[str, Any]) -> tuple[LocalizationConfig, Node
     p = NODE_PARAMS | {k: v for k, v in params.items() if k in NODE_PARAMS}
     init = None
     if p["set_initial_pose"]:
-        init = np.array([p["initial_pose.x"], p["initial_pose.y"], p["initial_pose.yaw"]], float)
+        names = ("initial_pose.x", "initial_pose.y", "initial_pose.yaw")
+        try:
+            init = np.array([float(p[k]) for k in names])
+        except (TypeError, ValueError):
+            got = {k: p[k] for k in names}
+            msg = f"invalid parameters: initial_pose takes numbers, got {got}"
+            raise ConfigError(msg) from None
     node = NodeSettings(
         base_frame_id=str(p["base_frame_id"]),
         odom_frame_id=str(p["odom_frame_id"]),
@@ -135,14 +144,16 @@ class LocalizationNode:
         if self.s.initial_pose is not None:
             self.pending = ("pose", self.s.initial_pose, None)
         self.odom_msg: Array | None = None
+        self.held: Any = None  # a scan waiting for the odometry at its stamp
         self.last_log: dict[str, float] = {}
         self.update_times: list[float] = []
         self.reflectors = self._reflectors()
         self._endpoints(node)
 
-    def _reflectors(self) -> tuple[Array | None, float]:
+    def _reflectors(self) -> tuple[Array, float] | None:
+        """The reflector map file's (``reflector_map``), else None: from ``/reflectors``."""
         if not self.s.reflector_map:
-            return None, 0.0
+            return None
         rm = load_reflector_map(self.s.reflector_map)
         return rm.xy, float(np.max(rm.radius))
 
@@ -157,7 +168,7 @@ class LocalizationNode:
             mc("nav_msgs/msg/OccupancyGrid"), "map", self.on_map, graph.LATCHED
         )
         node.create_subscription(pcs, "initialpose", self.on_initialpose, graph.RELIABLE)
-        node.create_subscription(tf_cls, "/tf", lambda m: self.on_tf(m, False), graph.RELIABLE)
+        node.create_subscription(tf_cls, "/tf", lambda m: self.on_tf(m, False), graph.TF)
         node.create_subscription(tf_cls, "/tf_static", lambda m: self.on_tf(m, True), graph.LATCHED)
         if self.s.use_odom_topic:
             node.create_subscription(
@@ -172,6 +183,13 @@ class LocalizationNode:
             mc("diagnostic_msgs/msg/DiagnosticArray"), "/diagnostics", graph.RELIABLE
         )
         node.create_service(Empty, "reinitialize_global_localization", self.on_global)
+        if self.cfg.method in REFLECTOR_METHODS and not self.s.reflector_map:
+            node.create_subscription(
+                mc("visualization_msgs/msg/MarkerArray"),
+                "reflectors",
+                self.on_reflectors,
+                graph.LATCHED,
+            )
 
     def log(self, key: str, text: str, level: str = "warn") -> None:
         """``text`` at most once per :data:`THROTTLE_S` per ``key``."""
@@ -191,13 +209,17 @@ class LocalizationNode:
     def on_tf(self, msg: Any, static: bool) -> None:
         for stamp, parent, child, Tm in messages.from_tf_message(msg):
             self.tf.set(stamp, parent, child, Tm, static)
+        held = self.held
+        if held is not None and not self._odometry_behind(held):
+            self.held = None
+            self._process(held)
 
     def on_odom(self, msg: Any) -> None:
         self.odom_msg = from_odometry(msg).pose
 
     def on_map(self, msg: Any) -> None:
         try:
-            refl, radius = self.reflectors
+            refl, radius = self.reflectors or (None, 0.0)
             self.grid = localization_msgs.from_occupancy_grid(msg, refl, radius)
         except MMPAError as e:
             self.log("map", f"/map refused: {e}", "error")
@@ -205,7 +227,25 @@ class LocalizationNode:
         self.node.get_logger().info(
             f"map {self.grid.width} x {self.grid.height} at {self.grid.resolution} m"
         )
-        if self.loc is not None:  # a new map: rebuild, keep the current pose
+        self._rebuild()
+
+    def on_reflectors(self, msg: Any) -> None:
+        """The surveyed reflector map on ``/reflectors`` (used when no ``reflector_map``)."""
+        try:
+            xy, radius = localization_msgs.from_reflector_markers(msg)
+        except MMPAError as e:
+            self.log("reflectors", f"/reflectors refused: {e}", "error")
+            return
+        self.reflectors = xy, radius
+        self.node.get_logger().info(f"{len(xy)} reflectors of radius {radius} m from /reflectors")
+        if self.grid is not None:
+            self.grid = dataclasses.replace(self.grid, reflectors=xy, reflector_radius=radius)
+            self._rebuild()
+
+    def _rebuild(self) -> None:
+        """A new map or reflector map: rebuild the localizer on the next scan, at the current
+        pose."""
+        if self.loc is not None:
             self.pending = ("pose", self.loc.pose_at(self.loc_odom), None)
             self.loc = None
 
@@ -224,6 +264,9 @@ class LocalizationNode:
         """The scan, the lidar mount and the odometry pose, or None (logged why)."""
         if self.grid is None:
             self.log("map", "waiting for /map (reliable, transient local)")
+            return None
+        if self.cfg.method in REFLECTOR_METHODS and self.reflectors is None:
+            self.log("reflectors", f"waiting for /reflectors (method {self.cfg.method})")
             return None
         try:
             scan = messages.from_laser_scan(msg)
@@ -273,7 +316,25 @@ class LocalizationNode:
             start_localizer(self.loc, self.cfg.method, pose, cov, kind == "global")
         return True
 
+    def _odometry_behind(self, msg: Any) -> bool:
+        """Whether the odometry on tf has not reached the scan's stamp yet, by less than
+        ``transform_tolerance`` (tf2's message filter: such a scan waits for it)."""
+        if self.s.use_odom_topic:
+            return False
+        last = self.tf.latest_stamp(self.s.base_frame_id)
+        t = localization_msgs.stamp_of(msg.header)
+        return last is not None and 0.0 < t - last <= self.s.transform_tolerance
+
     def on_scan(self, msg: Any) -> None:
+        """Process the scan, or hold it until tf has the odometry at its stamp (a newer scan
+        replaces a held one)."""
+        if self._odometry_behind(msg):
+            self.held = msg
+            return
+        self.held = None
+        self._process(msg)
+
+    def _process(self, msg: Any) -> None:
         inputs = self._inputs(msg)
         if inputs is None:
             return
@@ -292,8 +353,14 @@ class LocalizationNode:
 
     def _publish(self, stamp: float, est: Any, odom: Array) -> None:
         s = self.s
-        if not est.ok:
-            self.log("health", f"localization not ok: {est.reason}", "warn")
+        self._diagnostics(stamp, est)
+        if not est.ok:  # withheld: nothing downstream moves on it
+            self.log(
+                "health",
+                f"localization not ok at {stamp:.3f} s, no pose published: {est.reason}",
+                "error",
+            )
+            return
         pose = np.asarray(self.loc.pose_at(odom), float)
         if est.updated or not self._published:
             self.pose_pub.publish(
@@ -313,6 +380,8 @@ class LocalizationNode:
                     [(s.global_frame_id, s.odom_frame_id, se2_to_T(*map_odom))],
                 )
             )
+
+    def _diagnostics(self, stamp: float, est: Any) -> None:
         h = est.health
         values = {"method": self.cfg.method, "particles": int(est.n_particles)}
         values |= {k: v for k, v in vars(h).items() if isinstance(v, float | int)}

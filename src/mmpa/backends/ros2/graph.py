@@ -8,7 +8,8 @@ from the environment as for any ROS 2 process (``ROS_DOMAIN_ID``,
 
 QoS as Nav2 uses it: ``SENSOR_DATA`` (best effort, volatile, keep last 5: ``/scan``),
 ``LATCHED`` (reliable, transient local, keep last 1: ``/map``, ``/amcl_pose``, ``/tf_static``),
-``RELIABLE`` (reliable, volatile, keep last 10: commands, ``/tf``).
+``RELIABLE`` (reliable, volatile, keep last 10: commands, ``/tf``'s publishers), ``TF`` (keep
+last 100: a ``/tf`` listener, as tf2_ros's).
 """
 
 from __future__ import annotations
@@ -26,7 +27,15 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
-__all__ = ["LATCHED", "RELIABLE", "SENSOR_DATA", "Session", "matched", "wait_until_matched"]
+__all__ = [
+    "LATCHED",
+    "RELIABLE",
+    "SENSOR_DATA",
+    "TF",
+    "Session",
+    "matched",
+    "wait_until_matched",
+]
 
 SENSOR_DATA = qos_profile_sensor_data
 LATCHED = QoSProfile(
@@ -38,6 +47,15 @@ LATCHED = QoSProfile(
 RELIABLE = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
     depth=10,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
+#: a ``/tf`` listener's (tf2_ros's ``DynamicListenerQoS``: reliable, volatile, keep last 100):
+#: 10 would lose transforms while a callback runs long (2 s at 50 Hz)
+TF = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )

@@ -7,6 +7,9 @@
   of a planar pose ``[x, y, theta]`` and its (3, 3) covariance (rows x, y, yaw of ROS's 6x6);
 - :func:`particle_cloud`: ``nav2_msgs/ParticleCloud`` (``/particle_cloud``): planar poses
   (N, 3) with their weights;
+- :func:`from_reflector_markers`: ``visualization_msgs/MarkerArray`` (``/reflectors``, one
+  cylinder per surveyed reflector, as :func:`mmpa.backends.bag.messages.reflector_markers`
+  draws them) -> positions (N, 2) m in the markers' frame and the radius m;
 - :func:`diagnostics`: ``diagnostic_msgs/DiagnosticArray`` with one status (OK / ERROR and
   the reason).
 
@@ -29,6 +32,7 @@ from mmpa.maps.occupancy import OccupancyGrid
 __all__ = [
     "diagnostics",
     "from_occupancy_grid",
+    "from_reflector_markers",
     "particle_cloud",
     "planar",
     "pose_with_covariance",
@@ -65,6 +69,21 @@ def from_occupancy_grid(
         reflectors=np.zeros((0, 2)) if reflectors is None else reflectors,
         reflector_radius=reflector_radius,
     )
+
+
+def from_reflector_markers(msg: Any) -> tuple[Array, float]:
+    """``/reflectors`` -> ``(positions (N, 2) m, radius m)``: each marker's x, y and half its
+    diameter ``scale.x``; the largest radius is taken (the localizers take one). Markers with
+    ``action`` DELETE / DELETEALL are skipped. InvalidInputError when none is left or a value
+    is not finite."""
+    keep = [m for m in msg.markers if m.action == 0]  # ADD / MODIFY
+    xy = np.array([[m.pose.position.x, m.pose.position.y] for m in keep], float).reshape(-1, 2)
+    radii = np.array([0.5 * m.scale.x for m in keep], float)
+    if len(keep) == 0:
+        raise InvalidInputError("/reflectors holds no reflector")
+    if not (np.isfinite(xy).all() and np.isfinite(radii).all() and (radii > 0).all()):
+        raise InvalidInputError("/reflectors: positions and radii must be finite, radii > 0")
+    return xy, float(radii.max())
 
 
 def _T(pose: Any) -> Array:

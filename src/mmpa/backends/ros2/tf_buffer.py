@@ -61,6 +61,12 @@ class TfBuffer:
         else:
             hist.append((stamp, Tm))
 
+    def latest_stamp(self, child: str) -> float | None:
+        """The last stamp (s) of ``child``'s dynamic transform; None when it has none (static
+        or unknown)."""
+        entry = self._dynamic.get(child.lstrip("/"))
+        return entry[1][-1][0] if entry and entry[1] else None
+
     def why(self) -> str:
         """Why the last lookup returned None ('' after a successful one)."""
         return self._why
