@@ -238,6 +238,62 @@ _RefineOpt = Annotated[
 ]
 
 
+def _poses(text: str, what: str) -> list[tuple[float, ...]]:
+    """``x,y,theta`` poses separated by ``;`` (a usage error otherwise)."""
+    try:
+        poses = [tuple(float(v) for v in p.split(",")) for p in text.split(";") if p.strip()]
+    except ValueError:
+        poses = []
+    if not poses or any(len(p) != 3 for p in poses):
+        raise typer.BadParameter(f"{what} {text!r}: use x,y,theta (m, m, rad), ';' between poses")
+    return poses
+
+
+def _reflectors_hardware(common: dict, hw: dict, out: Path, path: Path, backend, yes: bool) -> None:
+    """The survey on the robot of ``path`` (no truth: the fit's residuals)."""
+    from pydantic import ValidationError
+
+    from mmpa.apps.calibrate import RobotSurveyConfig, run_reflector_survey_on_robot
+
+    needed = (("--map", "map"), ("--initial-pose", "initial_pose"), ("--route-poses", "route"))
+    for opt, key in needed:
+        if hw[key] is None:
+            raise typer.BadParameter(f"{opt} is needed on a {backend.kind} robot")
+    start = _poses(hw["initial_pose"], "--initial-pose")
+    if len(start) != 1:
+        raise typer.BadParameter("--initial-pose takes one pose x,y,theta")
+    route = _poses(hw["route"], "--route-poses")
+    try:
+        cfg = RobotSurveyConfig(
+            map=hw["map"], initial_pose=start[0], route=route, radius=hw["radius"], **common
+        )
+    except ValidationError as e:
+        err = e.errors()[0]
+        raise typer.BadParameter(f"{'.'.join(map(str, err['loc']))}: {err['msg']}") from None
+    try:
+        with open_hardware(path) as robot:
+            s = run_reflector_survey_on_robot(
+                robot,
+                cfg,
+                out,
+                kind=backend.kind,
+                confirm=confirmer(yes, backend),
+                log=lambda m: console.log(m, highlight=False),
+                robot_file=path,
+            )
+    except MMPAError as e:
+        fail(e)
+    if not s["ok"]:
+        console.print(f"[yellow]not surveyed: {s['reason']}[/]", highlight=False)
+        raise typer.Exit(1)
+    console.print(
+        f"reflectors: {s['found']} found, fit RMS {s['residual_rms_mm']:.2f} mm, "
+        f"{s['stations']} stops ({len(s['skipped'])} skipped); wrote {out}/reflectors.yaml, "
+        f"{out}/summary.json and {out}/robot.yaml (use it: mmpa --robot {out}/robot.yaml)",
+        highlight=False,
+    )
+
+
 @calibrate_app.command("reflectors")
 def reflectors_cmd(
     out: Annotated[
@@ -260,37 +316,65 @@ def reflectors_cmd(
     profile: Annotated[
         str, typer.Option(help="error model profile: ideal, reference, realistic, harsh")
     ] = "realistic",
+    map_yaml: Annotated[
+        Path | None, typer.Option("--map", help="hardware: the occupancy map (map_server YAML)")
+    ] = None,
+    initial_pose: Annotated[
+        str | None, typer.Option(help="hardware: the robot's rough pose x,y,theta in the map")
+    ] = None,
+    route_poses: Annotated[
+        str | None,
+        typer.Option(help="hardware: poses x,y,theta in the map, ';'-separated, in order"),
+    ] = None,
+    radius: Annotated[
+        float | None,
+        typer.Option(help="hardware: reflector radius, m (default: the map's)", min=0.001),
+    ] = None,
+    yes: YesOpt = False,
 ) -> None:
     """Survey the laser reflectors in the twin: drive ROUTE from SITE, stopping every
     SPACING m; at each stop localize with the laser-only METHOD (no reflectors; the stop's
     mean scan then matched onto the map) and detect the reflectors; cluster, fit (with the
     scanner's range bias), optionally refine the poses and reflectors jointly; placed by
     the poses or (ANCHOR reflector-map) onto the site's existing reflector map; compared
-    with the TRUE reflector positions; writes reflectors.yaml and robot.yaml."""
+    with the TRUE reflector positions; writes reflectors.yaml and robot.yaml. With
+    `mmpa --robot R` on a ros2 / direct robot: --map, --initial-pose and --route-poses (in the
+    map) instead of the sites, a question before the base moves (--yes skips it); no
+    truth: the fit's residuals."""
     _choice("profile", profile, _PROFILES)
     _choice("laser-only localizer", method, ("hector", "amcl"))
     _choice("anchor", anchor, ("poses", "reflector-map"))
     _choice("bearing", bearing, ("intensity", "mean"))
+    common = {
+        "station_spacing": spacing,
+        "scans": scans,
+        "method": method,
+        "anchor": anchor.replace("-", "_"),
+        "seed": seed,
+        "map_match": map_match,
+        "survey": {} if refine is None else {"refine_poses": refine},
+        "detection": {"bearing": bearing},
+    }
+    path, backend = backend_in_use()
+    if backend.hardware:
+        hw = {"map": map_yaml, "initial_pose": initial_pose, "route": route_poses, "radius": radius}
+        _reflectors_hardware(common, hw, out, path, backend, yes)
+        return
     stops = tuple(s.strip() for s in route.split(",") if s.strip())
     if not stops:
         raise typer.BadParameter("--route needs at least one site")
+    _reflectors_twin(common, site, stops, profile, out)
+
+
+def _reflectors_twin(
+    common: dict, site: str, stops: tuple[str, ...], profile: str, out: Path
+) -> None:
+    """The survey in the twin, judged against the TRUE reflector positions."""
     _twin_env()
     try:
         from mmpa.apps.calibrate import ReflectorSurveyConfig, run_reflector_survey
 
-        cfg = ReflectorSurveyConfig(
-            site=site,
-            route=stops,
-            station_spacing=spacing,
-            scans=scans,
-            method=method,
-            anchor=anchor.replace("-", "_"),  # type: ignore[arg-type]
-            seed=seed,
-            profile=profile,  # type: ignore[arg-type]
-            map_match=map_match,
-            survey={} if refine is None else {"refine_poses": refine},
-            detection={"bearing": bearing},
-        )
+        cfg = ReflectorSurveyConfig(site=site, route=stops, profile=profile, **common)
         with console.status("surveying the reflectors"):
             s = run_reflector_survey(cfg, out, log=lambda m: console.log(m, highlight=False))
     except MMPAError as e:

@@ -9,7 +9,8 @@
 - ``mmpa calibrate lidar-mount`` (:mod:`~mmpa.apps.calibrate.lidar_mount`): a turn on the
   spot and a circle fit;
 - ``mmpa calibrate reflectors`` (:mod:`~mmpa.apps.calibrate.reflectors`): the reflector map
-  surveyed from a drive.
+  surveyed from a drive; on a hardware robot (:mod:`~mmpa.apps.calibrate.reflectors_robot`):
+  the user's map, rough pose and route, the drive after the user's confirmation, no truth.
 
 The files they write (``hand_eye.yaml``, ``calibration.conf``, ``robot.yaml``,
 ``summary.json``) in :mod:`~mmpa.apps.calibrate.files`. Figures: docs/calibration.md.
@@ -23,16 +24,19 @@ from mmpa.apps.calibrate.hand_eye_robot import run_hand_eye_on_robot
 from mmpa.apps.calibrate.hand_eye_truth import last_link_error
 from mmpa.apps.calibrate.lidar_mount import run_lidar_mount
 from mmpa.apps.calibrate.reflectors import ReflectorSurveyConfig, run_reflector_survey
+from mmpa.apps.calibrate.reflectors_robot import RobotSurveyConfig, run_reflector_survey_on_robot
 
 __all__ = [
     "HandEyeConfig",
     "ReflectorSurveyConfig",
+    "RobotSurveyConfig",
     "hand_eye_yaml",
     "last_link_error",
     "run_hand_eye",
     "run_hand_eye_on_robot",
     "run_lidar_mount",
     "run_reflector_survey",
+    "run_reflector_survey_on_robot",
     "ur_calibration_conf",
     "write_robot_file",
 ]

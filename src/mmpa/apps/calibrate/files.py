@@ -99,12 +99,7 @@ def write_robot_file(
     if robot_file is None:
         return save_robot(calibrated, path)
     frames, backend = load_robot(robot_file)[1], robot_backend(robot_file)
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(robot_to_yaml(calibrated, frames, backend=backend), encoding="utf-8")
-    tmp.replace(p)
-    return p
+    return _write_text(Path(path), robot_to_yaml(calibrated, frames, backend=backend))
 
 
 def write_robot_file_lidar(mount: Array, path: Path) -> Path:
@@ -117,8 +112,24 @@ def write_robot_file_lidar(mount: Array, path: Path) -> Path:
     return save_robot(robot.with_updates(lidar=lidar.model_dump()), path)
 
 
-def write_robot_file_reflectors(path: Path, reflector_map: str) -> Path:
+def write_robot_file_reflectors(
+    path: Path, reflector_map: str, robot_file: str | Path | None = None
+) -> Path:
     """The robot in use (``mmpa --robot FILE``, else the twin's) as a robot file whose
-    ``reflector_map`` names the surveyed map (relative: beside the robot file)."""
+    ``reflector_map`` names the surveyed map (relative: beside the robot file);
+    ``robot_file``: a hardware robot's file, whose ``frames`` and ``backend`` it keeps."""
 
-    return save_robot(default_robot(), path, reflector_map=reflector_map)
+    if robot_file is None:
+        return save_robot(default_robot(), path, reflector_map=reflector_map)
+    robot, frames = load_robot(robot_file)
+    text = robot_to_yaml(robot, frames, reflector_map, robot_backend(robot_file))
+    return _write_text(Path(path), text)
+
+
+def _write_text(p: Path, text: str) -> Path:
+    """``text`` to ``p`` (a temporary file renamed: never half a robot file)."""
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.write_text(text, encoding="utf-8")
+    tmp.replace(p)
+    return p

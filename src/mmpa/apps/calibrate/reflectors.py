@@ -45,7 +45,7 @@ from mmpa.missions.survey_drive import (
 )
 from mmpa.navigation.planner import CostMap
 
-__all__ = ["ReflectorSurveyConfig", "run_reflector_survey"]
+__all__ = ["ReflectorSurveyConfig", "fit_survey", "map_match_priors", "run_reflector_survey"]
 
 
 class ReflectorSurveyConfig(SurveyDriveConfig):
@@ -142,7 +142,9 @@ def _drive(
         )
 
 
-def _fit(obs: SurveyObservations, scfg: SurveyConfig) -> tuple[ReflectorSurvey, ReflectorSurvey]:
+def fit_survey(
+    obs: SurveyObservations, scfg: SurveyConfig
+) -> tuple[ReflectorSurvey, ReflectorSurvey]:
     """The fit, and the same fit with the joint refinement switched the other way."""
     res = survey_reflectors(obs, scfg)
     if not res.ok:
@@ -328,7 +330,7 @@ def run_reflector_survey(
     errors = ErrorModelConfig.from_profile(cfg.profile, seed=cfg.seed)
     scfg = _survey_defaults(cfg, errors)
     tw = _drive(cfg, errors, log)
-    fits = _fit(tw.drive.observations, scfg)
+    fits = fit_survey(tw.drive.observations, scfg)
     summary, xy = _survey_summary(cfg, scfg, tw, fits, t0)
     if out is not None:
         _write(Path(out), summary, xy, tw)
@@ -351,11 +353,22 @@ def _survey_defaults(cfg: ReflectorSurveyConfig, errors: ErrorModelConfig) -> Su
         upd["range_bias"] = li.reflector_bias_mean + li.reflector_incidence_bias * (1 - np.pi / 4)
     if "bias_sigma" not in given:
         upd["bias_sigma"] = li.reflector_bias_sd
-    if cfg.map_match and "refine_poses" not in given:
+    return map_match_priors(sc.model_copy(update=upd), cfg.map_match, given)
+
+
+def map_match_priors(
+    sc: SurveyConfig, map_match: bool, given: set[str] | None = None
+) -> SurveyConfig:
+    """With ``map_match``, the fit's fields not set explicitly (``given``, default
+    ``sc.model_fields_set``): no joint refinement, pose priors of 5 mm / 1 mrad (the
+    map-matched stops are within ~1 mm; docs/calibration.md "Reflector survey")."""
+    given = sc.model_fields_set if given is None else given
+    upd: dict[str, Any] = {}
+    if map_match and "refine_poses" not in given:
         upd["refine_poses"] = False
-    if cfg.map_match and "pose_sigma_xy" not in given:
+    if map_match and "pose_sigma_xy" not in given:
         upd["pose_sigma_xy"] = 0.005
-    if cfg.map_match and "pose_sigma_yaw" not in given:
+    if map_match and "pose_sigma_yaw" not in given:
         upd["pose_sigma_yaw"] = 0.001
     return sc.model_copy(update=upd)
 
