@@ -1,0 +1,103 @@
+"""AMCL on the real CARMEN logs (issue 34 item 3): the figures of docs/localization.md
+"Real logs" (table "AMCL at its defaults").
+
+For each log in ``/work/shared/real-data/laser`` (or ``--root``), through the pipeline of
+``mmpa benchmark localization`` (:func:`~mmpa.apps.benchmark.run_pipeline`: the map built
+from the log at 5 cm, the health monitor included, seed 0), one line per run:
+
+- ``true``: from the first corrected pose, every scan (``--max-scans`` to cut);
+- ``offset``: from 1 m / 30 deg off, in three directions (``--offsets``), the first 60 scans:
+  the first scan within 10 cm and whether the error stays under 0.5 m from scan 30 on;
+- ``global`` (``--global``): particles over the whole map, the first 60 scans, per laser
+  model.
+
+Each line: median / p95 / max position error (mm), heading median (deg), the share within
+10 cm, the first scan over 0.5 m after scan 30 (``diverged``), the median time per update
+(ms, this machine). ``--set key=value`` changes the AMCL settings (``--set
+scan_refine=false`` ...; ``--paper`` starts from Nav2's defaults).
+
+Run::
+
+    OMP_NUM_THREADS=1 nice -n 5 .venv/bin/python benchmarks/bench_amcl_real.py \\
+        [--logs intel,csail,freiburg-079] [--runs true,offset,global] [--paper] [--set k=v]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from mmpa.apps.benchmark import BenchmarkConfig, run_pipeline
+from mmpa.apps.benchmark_data import CarmenDataset
+from mmpa.localization.config import AMCLConfig
+from mmpa.localization.evaluation import error_statistics, trajectory_errors
+
+REAL = Path("/work/shared/real-data/laser")
+LOGS = ("intel", "csail", "freiburg-079")
+OFFSETS = ((1.0, 0.0, 0.5236), (0.0, 1.0, -0.5236), (-0.7071, -0.7071, 0.5236))
+
+
+def _line(ds: CarmenDataset, cfg: BenchmarkConfig) -> dict[str, Any]:
+    run = run_pipeline(ds, cfg)
+    s = error_statistics(run.estimate, run.truth, run.t, run.update_s)
+    pos, _ = trajectory_errors(run.estimate, run.truth)
+    near = np.flatnonzero(pos <= 0.10)
+    return {
+        "scans": s["scans"],
+        "median_mm": s["error_median_mm"],
+        "p95_mm": s["error_p95_mm"],
+        "max_mm": s["error_max_mm"],
+        "heading_median_deg": s["heading_error_median_deg"],
+        "within_10cm": s["within_10cm"],
+        "first_within_10cm": int(near[0]) if near.size else None,
+        "diverged": s["diverged_at_scan"],
+        "ms_per_update": s["update_median_ms"],
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--root", type=Path, default=REAL)
+    ap.add_argument("--logs", default=",".join(LOGS))
+    ap.add_argument("--runs", default="true,offset,global")
+    ap.add_argument("--max-scans", type=int, default=None)
+    ap.add_argument("--paper", action="store_true", help="Nav2's defaults (AMCLConfig.paper())")
+    ap.add_argument("--set", action="append", default=[], help="an AMCL setting, key=value")
+    a = ap.parse_args(argv)
+    base = AMCLConfig.paper() if a.paper else AMCLConfig()
+    sets = {k: yaml.safe_load(v) for k, v in (s.split("=", 1) for s in a.set)}
+    amcl = AMCLConfig.model_validate(base.model_dump() | sets)
+    runs = a.runs.split(",")
+    for name in a.logs.split(","):
+        path = a.root / f"{name}-corrected.log.gz"
+        if not path.exists():
+            print(f"{path}: missing", file=sys.stderr)
+            return 2
+        ds = CarmenDataset(path)
+        jobs: list[tuple[str, dict[str, Any]]] = []
+        if "true" in runs:
+            jobs.append(("true", {"max_scans": a.max_scans}))
+        if "offset" in runs:
+            jobs += [(f"offset {o}", {"max_scans": 60, "initial_offset": o}) for o in OFFSETS]
+        if "global" in runs:
+            for model in ("likelihood_field_prob", "beam"):
+                kw = {"max_scans": 60, "global_localization": True}
+                jobs.append((f"global {model}", kw | {"laser_model_type": model}))
+        for label, kw in jobs:
+            model = kw.pop("laser_model_type", None)
+            cfg_amcl = (
+                amcl if model is None else amcl.model_copy(update={"laser_model_type": model})
+            )
+            cfg = BenchmarkConfig(method="amcl", amcl=cfg_amcl, **kw)
+            print(json.dumps({"log": name, "run": label, **_line(ds, cfg)}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
