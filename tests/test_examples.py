@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -59,3 +61,22 @@ def test_hand_eye_on_your_robot(tmp_path) -> None:
     robot, _ = load_robot(out["robot_file"])
     np.testing.assert_allclose(robot.camera.T_flange_camera, out["T_flange_camera"], atol=1e-9)
     np.testing.assert_allclose(robot.arm.dh.a, out["result"].dh.a, atol=1e-12)
+
+
+def test_teach_and_repeat_on_your_robot_against_the_fakes() -> None:
+    """The direct backend's teach-and-repeat example with --fake: the RTDE fake replays a
+    person's 2 s freedrive between two presses of digital input 0 (101 samples at 50 Hz),
+    the RealSense recording shows the same still scene, so IPE converges at once on the
+    identity and the taught path runs as taught (--yes: no question)."""
+    pytest.importorskip("pyrealsense2", reason="the optional extra 'realsense'")
+    res = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / "teach_and_repeat_on_your_robot.py"),
+         "--fake", "--yes"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "'path_waypoints': 101" in res.stdout
+    assert "'executed': True" in res.stdout and "'ipe_iterations': 1" in res.stdout
+    assert "adapted vs taught tool path: 0.0 mm at most" in res.stdout
