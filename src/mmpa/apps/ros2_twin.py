@@ -89,6 +89,9 @@ class TwinNodeConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     site: str = "0"  # where the robot starts (a site of the scene)
+    # start pose [x, y, theta] (m, m, rad in map) instead of the site's park pose (a rough
+    # parking near the site: `mmpa --robot R run` where the robot stands); None: the site's
+    pose: tuple[float, float, float] | None = None
     errors: ErrorModelConfig = Field(default_factory=ErrorModelConfig)
     camera: bool = False  # publish the wrist camera
     camera_rate_hz: float = Field(15.0, gt=0)
@@ -123,6 +126,8 @@ class TwinNode:
     def __init__(self, cfg: TwinNodeConfig, args: list[str] | None = None) -> None:
         self.cfg = cfg
         self.world = SimWorld(errors=cfg.errors, site=cfg.site)
+        if cfg.pose is not None:
+            self.world.reset(site=cfg.site, pose2d=np.asarray(cfg.pose, float))
         self.session = graph.Session("mmpa_twin", args)
         self.stats = TwinStats()
         self._commands: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
@@ -386,15 +391,26 @@ class TwinNode:
 
 
 def twin_node_config(
-    site: str = "0", profile: str | None = None, seed: int = 0, **fields: Any
+    site: str = "0",
+    profile: str | None = None,
+    seed: int = 0,
+    pose: tuple[float, float, float] | None = None,
+    **fields: Any,
 ) -> TwinNodeConfig:
     """The node's settings for robot instance ``seed`` of error profile ``profile`` (None:
-    realistic) at ``site``; ``fields``: other :class:`TwinNodeConfig` fields. An unknown
-    profile or a bad value raises ``ConfigError``."""
+    realistic) at ``site`` (at ``pose`` near it when given); ``fields``: other
+    :class:`TwinNodeConfig` fields. An unknown profile or a bad value raises
+    ``ConfigError``."""
     sets = [f"errors.seed={seed}"]
     sets += [] if profile is None else [f"errors.profile={profile}"]
     sets += [f"{k}={v}" for k, v in fields.items()]
-    return load_config(TwinNodeConfig, None, sets).model_copy(update={"site": str(site)})
+    cfg = load_config(TwinNodeConfig, None, sets).model_copy(update={"site": str(site)})
+    if pose is not None:
+        p = np.asarray(pose, float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise InvalidInputError(f"the start pose is x, y, theta (3 finite numbers), got {pose}")
+        cfg = cfg.model_copy(update={"pose": (float(p[0]), float(p[1]), float(p[2]))})
+    return cfg
 
 
 def run_twin_node(

@@ -58,6 +58,10 @@ def twin_cmd(
     duration: Annotated[
         float | None, typer.Option(help="Stop after this many sim seconds (default: Ctrl-C).")
     ] = None,
+    pose: Annotated[
+        str | None,
+        typer.Option(help="Start at x,y,theta (map) near the site instead of its park pose."),
+    ] = None,
 ) -> None:
     """The digital twin as a ROS 2 robot: /clock, /scan, /odom, /tf, /map, the camera; takes
     /cmd_vel and the arm's trajectories (docs/ros2.md; ROS arguments after --ros-args)."""
@@ -66,10 +70,15 @@ def twin_cmd(
     except ImportError as e:
         fail(MMPAError(f"the ros2 extra is missing ({e}); make setup installs it"))
     try:
+        try:
+            start = None if pose is None else tuple(float(x) for x in pose.split(","))
+        except ValueError:
+            raise MMPAError(f"--pose is x,y,theta (3 numbers), got {pose!r}") from None
         cfg = twin_node_config(
             site,
             profile,
             seed,
+            start,  # type: ignore[arg-type]
             camera=camera,
             camera_rate_hz=camera_rate,
             speed=speed,
