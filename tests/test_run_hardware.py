@@ -104,6 +104,8 @@ def test_yes_executes_within_the_scaled_limits(site) -> None:
     ts_, qs = fake.servo_targets()
     lim = JointLimits.from_description(ts.world.nominal.arm)
     assert len(qs) > 100
+    # every set-point sent was within the position limits (checked before it was sent)
+    assert np.all(qs >= lim.q_min - 1e-9) and np.all(qs <= lim.q_max + 1e-9)
     v = np.abs(path_velocities(ts_, qs)).max(axis=0)
     assert np.all(v <= 0.5 * lim.qd_max * (1 + 1e-9))
     a = np.abs(path_accelerations(ts_[::10], qs[::10])).max(axis=0)

@@ -11,10 +11,19 @@ from typing import Annotated, NoReturn
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
 
 from mmpa.core.errors import MMPAError
 
 console = Console()
+
+
+def show_summary(summary: dict, title: str) -> None:
+    """Print a command's summary as a two-column table (key, value)."""
+    t = Table(title=title, show_header=False)
+    for k, v in summary.items():
+        t.add_row(k, str(v))
+    console.print(t)
 
 
 def fail(e: MMPAError) -> NoReturn:

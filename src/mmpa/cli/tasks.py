@@ -11,7 +11,14 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from mmpa.cli.common import DbOpt, ProfileOpt, console, fail, profile_overrides
+from mmpa.cli.common import (
+    DbOpt,
+    ProfileOpt,
+    console,
+    fail,
+    profile_overrides,
+    show_summary,
+)
 from mmpa.cli.hardware import YesOpt, backend_in_use, confirmer, open_hardware
 from mmpa.core.errors import InvalidInputError, MMPAError
 
@@ -179,13 +186,6 @@ def _mmpa_config(config: Path | None, seed: int, set_: list[str] | None, profile
     return load_config(MMPAExperimentConfig, config, sets)
 
 
-def _show(summary: dict, title: str) -> None:
-    t = Table(title=title, show_header=False)
-    for k, v in summary.items():
-        t.add_row(k, str(v))
-    console.print(t)
-
-
 def _joints(text: str | None) -> np.ndarray | None:
     """``--sample-q``: six comma-separated joint angles (rad)."""
     if text is None:
@@ -248,7 +248,7 @@ def teach(
                 summary = teach_task(site, task, db=db, cfg=cfg, overwrite=overwrite)
     except MMPAError as e:
         fail(e)
-    _show(summary, f"taught {task}")
+    show_summary(summary, f"taught {task}")
 
 
 def run_cmd(
@@ -297,7 +297,7 @@ def run_cmd(
                 )
     except MMPAError as e:
         fail(e)
-    _show(summary, f"mmpa run {task}")
+    show_summary(summary, f"mmpa run {task}")
     if not summary.get("executed") and not (dry_run is not None and "files" in summary):
         console.print(f"[yellow]not executed:[/] {summary.get('reason', '')}")
         raise typer.Exit(1)
