@@ -70,7 +70,7 @@ def hardware(tmp_path, monkeypatch, board):
     devices = RobotDevices(board.nominal, arm=board.arm, camera=board.camera, clock=board)
 
     @contextmanager
-    def open_hardware(p):
+    def open_hardware(p, wanted=None):
         assert p == path
         yield devices
 
@@ -164,7 +164,7 @@ def survey_hw(tmp_path, monkeypatch, drive_world):
     devices = RobotDevices(w.nominal, base=w.base, odometry=w.odometry, lidar=w.lidar, clock=w)
 
     @contextmanager
-    def open_hardware(p):
+    def open_hardware(p, wanted=None):
         yield devices
 
     monkeypatch.setattr("mmpa.cli.calibrate.open_hardware", open_hardware)

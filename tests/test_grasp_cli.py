@@ -95,7 +95,7 @@ def hardware(tmp_path, monkeypatch, world):
     )
 
     @contextmanager
-    def open_hardware(p):
+    def open_hardware(p, wanted=None):
         assert p == path
         yield devices
 

@@ -77,7 +77,7 @@ def _hand_eye_hardware(cfg, out: Path, path: Path, backend, yes: bool) -> None:
     from mmpa.apps.calibrate import run_hand_eye_on_robot
 
     try:
-        with open_hardware(path) as robot:
+        with open_hardware(path, ("clock", "arm", "camera")) as robot:
             s = run_hand_eye_on_robot(
                 robot,
                 cfg,
@@ -271,7 +271,7 @@ def _reflectors_hardware(common: dict, hw: dict, out: Path, path: Path, backend,
         err = e.errors()[0]
         raise typer.BadParameter(f"{'.'.join(map(str, err['loc']))}: {err['msg']}") from None
     try:
-        with open_hardware(path) as robot:
+        with open_hardware(path, ("clock", "odometry", "base", "lidar")) as robot:
             s = run_reflector_survey_on_robot(
                 robot,
                 cfg,

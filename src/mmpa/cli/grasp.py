@@ -80,7 +80,7 @@ def grasp_cmd(
     try:
         cfg = _settings(config, options, profile, set_)
         if backend.hardware:
-            with open_hardware(path) as robot:
+            with open_hardware(path, ("clock", "arm", "camera", "gripper", "base")) as robot:
                 summary = grasp_on_robot(
                     robot, object_, cfg, kind=backend.kind, confirm=confirmer(yes, backend)
                 )

@@ -45,12 +45,10 @@ def confirmer(yes: bool, backend: Any) -> Callable[[str], bool] | None:
 
 
 @contextmanager
-def open_hardware(path: Path) -> Iterator[Any]:
-    """The hardware robot of robot file ``path`` (:func:`mmpa.apps.robots.open_robot`),
-    closed after; a clear error when it cannot be opened."""
-    try:
-        from mmpa.apps.robots import open_robot
-    except ImportError as e:
-        fail(MMPAError(f"cannot open the robot of {path}: the hardware backends are missing ({e})"))
-    with open_robot(path) as robot:
+def open_hardware(path: Path, devices: tuple[str, ...] | None = None) -> Iterator[Any]:
+    """The hardware robot of robot file ``path`` (:func:`mmpa.apps.robots.open_robot`) with
+    ``devices`` waited for (None: all it has; absent ones are skipped), closed after."""
+    from mmpa.apps.robots import open_robot
+
+    with open_robot(path, devices) as robot:
         yield robot
