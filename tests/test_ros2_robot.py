@@ -26,10 +26,13 @@ pytest.importorskip(
 from mmpa.apps.robots import RobotLocalizer, open_robot
 from mmpa.backends.bag import messages as bag
 from mmpa.backends.ros2 import graph, localization_msgs, messages
+from mmpa.backends.ros2.devices.node import RobotNode
 from mmpa.backends.twin.scene import load_scene
 from mmpa.core.errors import ConfigError
 from mmpa.core.geometry import se2_compose, se2_inv
+from mmpa.robot.description import default_robot
 from mmpa.robot.interfaces import Odometry
+from mmpa.tasks.store import TaskStore
 from test_ros2_devices import TWIN_JOINTS, domain, start_twin, stop
 
 #: the navigation's settle check: 1.5 x the final approach's 3 mm on the estimate, plus
@@ -144,7 +147,8 @@ def _check_parked(s: dict) -> None:
 
 def test_navigate_over_ros2_a_short_drive(tmp_path: Path) -> None:
     """0.3 m straight ahead of site 0 on the twin node, over /cmd_vel, /scan, /odom, /map,
-    /reflectors. Measured: parked 3.5 mm / 0.10 deg from the goal by the truth."""
+    /reflectors. Measured (three runs): parked 3.5-5.5 mm / 0.10-0.15 deg from the goal by
+    the truth (the real-time loop is not bit-reproducible); bounds 10 mm / 0.5 deg."""
     x, y, th = load_scene().site("0").pose2d
     goal = f"{x + 0.3 * np.cos(th):.4f},{y + 0.3 * np.sin(th):.4f},{th:.5f}"
     summary, _ = _navigate(tmp_path, goal, 240.0)
@@ -158,3 +162,76 @@ def test_navigate_over_ros2_from_site_0_to_1(tmp_path: Path) -> None:
     / 0.09 deg from site 1 by the truth (the twin path in-process: 3.6 mm / 0.14 deg)."""
     summary, _ = _navigate(tmp_path, "1", 400.0)
     _check_parked(summary)
+
+
+def _rough_park(site: str, offset: np.ndarray) -> np.ndarray:
+    """The base pose that puts the arm base at Table 2's ``offset`` ``[dx, dy, dyaw]`` from
+    its pose parked exactly at ``site`` (as the twin path's ``TwinSite.park`` does)."""
+    arm = np.array([*default_robot().T_base_link_arm_base[:2, 3], 0.0])
+    Bk = se2_compose(se2_compose(load_scene().site(site).pose2d, arm), se2_inv(offset))
+    return se2_compose(Bk, se2_inv(arm))
+
+
+def _key_tip_error(task_db: Path, monitor: dict) -> float:
+    """The needle-tip error (m) as the twin path judges it (``key_error``): the TRUE tip when
+    the encoders are at the adapted path's key sample, from the truth of the same tick,
+    against the TRUE tip at teaching (``twin_key_tcp_map``)."""
+    with TaskStore(task_db) as store:
+        task = store.load("needle_site1")
+    key_tip = np.asarray(json.loads(task.meta["twin_key_tcp_map"]), float)
+    k = int(task.meta["twin_key_index"])
+    path = [m for _, m in monitor["trajectory"].snapshot()][-1]  # the adapted path
+    q_key = np.asarray(path.points[k].positions, float)
+    states = [m for _, m in monitor["joints"].snapshot()]
+    q = np.array([np.asarray(m.position, float) for m in states])
+    at = localization_msgs.stamp_of(states[int(np.argmin(np.abs(q - q_key).max(axis=1)))].header)
+    tips = {localization_msgs.stamp_of(m.header): m for _, m in monitor["tcp"].snapshot()}
+    return float(np.linalg.norm(bag.from_pose(tips[at].pose)[:3, 3] - key_tip))
+
+
+@pytest.mark.slow
+def test_run_task_over_ros2_after_a_rough_parking(tmp_path: Path) -> None:
+    """``mmpa --robot ros2.yaml run needle_site1 --yes`` against the twin node parked
+    roughly at site 1 (the twin path's first parking offset of seed 0: 13.8 mm, -99.9 mm,
+    -3.13 deg): IPE with the camera over ROS 2, the adapted path over the trajectory topic.
+    Measured: the estimate [13.7, -100.2, -0.1] mm, [-0.02, 0.00, -3.12] deg; the needle
+    tip 0.197 mm from the taught one (the twin path, in-process: 0.361 mm); the twin node
+    refused nothing."""
+    db = tmp_path / "tasks.db"
+    cmd = "from mmpa.cli.main import main; main()"
+    taught = subprocess.run(
+        [sys.executable, "-c", cmd, "teach", "1", "needle_site1", "--db", str(db)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert taught.returncode == 0, taught.stdout[-2000:] + taught.stderr[-2000:]
+    dom = domain("run")
+    pose = _rough_park("1", np.array([0.0138, -0.0999, np.deg2rad(-3.13)]))
+    twin_log = tmp_path / "twin.log"
+    args = ["--site", "1", "--camera", f"--pose={pose[0]},{pose[1]},{pose[2]}"]
+    proc = start_twin(twin_log, dom, *args, "--duration", "900")
+    node = RobotNode("mmpa_test_monitor", dom)
+    pose_t, js = "geometry_msgs/msg/PoseStamped", "sensor_msgs/msg/JointState"
+    monitor = {
+        "tcp": node.subscribe("truth", "/truth/tcp_pose", pose_t, keep=100_000),
+        "joints": node.subscribe("arm", "/joint_states", js, keep=100_000),
+        "trajectory": node.subscribe(
+            "arm", "/scaled_joint_trajectory_controller/joint_trajectory",
+            "trajectory_msgs/msg/JointTrajectory", graph.RELIABLE, keep=100,
+        ),
+    }  # fmt: skip
+    try:
+        args = ["--robot", str(robot_file(tmp_path, dom)), "run", "needle_site1"]
+        run = subprocess.run(
+            [sys.executable, "-c", cmd, *args, "--db", str(db), "--yes"],
+            capture_output=True, text=True, timeout=600, env=os.environ | {"COLUMNS": "200"},
+        )  # fmt: skip
+    finally:
+        stop(proc)
+        node.close()
+    out = run.stdout + run.stderr
+    assert run.returncode == 0, f"{out[-3000:]}\ntwin:\n{twin_log.read_text()[-2000:]}"
+    assert "executed" in out and "True" in out and "ipe_ok" in out
+    assert "refused" not in twin_log.read_text()
+    error = _key_tip_error(db, monitor)
+    print(f"needle tip {1000 * error:.3f} mm")
+    assert error < 1e-3
