@@ -14,6 +14,7 @@ the extra is not installed.
 
 from __future__ import annotations
 
+import array
 import os
 import signal
 import subprocess
@@ -330,3 +331,48 @@ def test_params_map_onto_the_localization_config() -> None:
         config_from_params({"z_hit": -1.0})
     with pytest.raises(ConfigError, match="method"):
         config_from_params({"method": "nope"})
+
+
+def test_node_withholds_the_pose_of_a_nan_scan_and_refuses_an_inf_angle(
+    ros_env: None, tmp_path: Path
+) -> None:
+    """After 4 good scans: a scan whose ranges are all NaN (the localizer reports it not ok)
+    publishes no /amcl_pose and no map -> odom, and the log says why; a scan whose angle_min
+    is inf is refused with a line naming it. Then a good scan is localized again."""
+    node = _node(tmp_path / "amcl.yaml")
+    grid, rng = _grid(), np.random.default_rng(3)
+    nan_k, inf_k = 4, 5
+    try:
+        with graph.Session("mmpa_test_player") as s:
+            p = Player(s)
+            assert p.ready(), "the node's /scan subscription never matched"
+            p.play(0, mount=True)
+            for k in range(7):
+                t = T0 + DT * k
+                p.tf.publish(messages.tf_message(t, [("odom", "base_link", se2_to_T(*_odom(k)))]))
+                msg = messages.laser_scan(_scan(grid, k, rng))
+                if k == nan_k:
+                    msg.ranges = array.array("f", [float("nan")] * N_BEAMS)
+                if k == inf_k:
+                    msg.angle_min = float("inf")
+                p.scan.publish(msg)
+                s.spin_until(lambda: False, DT)
+            last = T0 + 6 * DT
+            s.spin_until(
+                lambda: (
+                    any(abs(t - last) < 1e-6 for t, _, _ in p.poses)
+                    and any(abs(t - last - 1.0) < 1e-6 for t, _ in p.map_odom)
+                ),
+                5.0,
+            )
+    finally:
+        log = _stop(node)
+    stamps = [round((t - T0) / DT) for t, _, _ in p.poses]
+    tf_stamps = [round((t - 1.0 - T0) / DT) for t, _ in p.map_odom]
+    # the good scans' poses (a best-effort scan may be lost on the way: not asserted)
+    assert stamps[-1] == 6 and {nan_k, inf_k}.isdisjoint(stamps), (stamps, log)
+    assert 6 in tf_stamps and {nan_k, inf_k}.isdisjoint(tf_stamps), (tf_stamps, log)
+    assert f"localization not ok at {T0 + nan_k * DT:.3f} s, no pose published" in log, log
+    assert f"{N_BEAMS} of {N_BEAMS} ranges NaN" in log, log
+    assert "scan refused, nothing published from it" in log, log
+    assert "angle_min must be finite" in log, log

@@ -213,6 +213,8 @@ def test_cmd_vel_drives_odom_and_truth_at_v(twin: tuple[Peer, Path]) -> None:
 
 
 def test_nan_cmd_vel_is_refused_and_nothing_moves(twin: tuple[Peer, Path]) -> None:
+    """At rest, NaN /cmd_vel for 0.5 s: refused (logged), the base holds (< 0.1 mm); driving
+    at 0.2 m/s, one NaN stops it as a zero twist does."""
     peer, log = twin
     peer.at_rest()
     _, p1 = peer.truth()
@@ -220,6 +222,20 @@ def test_nan_cmd_vel_is_refused_and_nothing_moves(twin: tuple[Peer, Path]) -> No
     _, p2 = peer.truth()
     assert np.hypot(*(p2 - p1)[:2]) < 1e-4
     assert "refused /cmd_vel: a velocity is NaN" in log.read_text()
+    # while driving at 0.2 m/s: one NaN stops the base as a zero twist does, not after the
+    # 0.5 s timeout of /cmd_vel (which would leave it 0.2 m/s * 0.5 s = 100 mm further)
+    coast = {}
+    for stop in (0.0, float("nan")):
+        peer.at_rest()
+        peer.wait_sim(0.5, lambda: peer.cmd_vel.publish(peer.twist(0.2, 0.0)))
+        _, a = peer.truth()
+        peer.cmd_vel.publish(peer.twist(stop, 0.0))
+        peer.wait_sim(0.6)
+        _, b = peer.truth()
+        coast[str(stop)] = float(np.hypot(*(b - a)[:2]))
+    # measured: 3.2 mm after the NaN, 8.3 mm after the zero twist (where in the tick each
+    # lands); a base that ran on to the timeout would coast >= 90 mm
+    assert coast["nan"] < 0.04 and coast["0.0"] < 0.04, coast
 
 
 def _trajectory(q: np.ndarray, times: list[float]) -> Any:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -60,6 +61,7 @@ NODE_PARAMS: dict[str, Any] = {
     "seed": 0,  # mmpa: the particle filter's random seed
 }
 THROTTLE_S = 2.0
+HELD_SCANS = 5  # scans held for the odometry at their stamps (the /scan QoS depth)
 #: the methods that need the surveyed reflectors (``reflector_map`` or ``/reflectors``)
 REFLECTOR_METHODS = ("enhanced", "enhanced-paper", "trilateration", "tamcl")
 
@@ -144,7 +146,7 @@ class LocalizationNode:
         if self.s.initial_pose is not None:
             self.pending = ("pose", self.s.initial_pose, None)
         self.odom_msg: Array | None = None
-        self.held: Any = None  # a scan waiting for the odometry at its stamp
+        self.held: deque[Any] = deque(maxlen=HELD_SCANS)  # scans waiting for the odometry
         self.last_log: dict[str, float] = {}
         self.update_times: list[float] = []
         self.reflectors = self._reflectors()
@@ -209,10 +211,8 @@ class LocalizationNode:
     def on_tf(self, msg: Any, static: bool) -> None:
         for stamp, parent, child, Tm in messages.from_tf_message(msg):
             self.tf.set(stamp, parent, child, Tm, static)
-        held = self.held
-        if held is not None and not self._odometry_behind(held):
-            self.held = None
-            self._process(held)
+        while self.held and not self._odometry_behind(self.held[0]):
+            self._process(self.held.popleft())
 
     def on_odom(self, msg: Any) -> None:
         self.odom_msg = from_odometry(msg).pose
@@ -326,13 +326,14 @@ class LocalizationNode:
         return last is not None and 0.0 < t - last <= self.s.transform_tolerance
 
     def on_scan(self, msg: Any) -> None:
-        """Process the scan, or hold it until tf has the odometry at its stamp (a newer scan
-        replaces a held one)."""
-        if self._odometry_behind(msg):
-            self.held = msg
+        """Process the scan, or hold it (in arrival order, at most :data:`HELD_SCANS`) until
+        tf has the odometry at its stamp."""
+        if not self.held and not self._odometry_behind(msg):
+            self._process(msg)
             return
-        self.held = None
-        self._process(msg)
+        if len(self.held) == HELD_SCANS:
+            self.log("held", f"dropped a scan: {HELD_SCANS} wait for the odometry on tf")
+        self.held.append(msg)
 
     def _process(self, msg: Any) -> None:
         inputs = self._inputs(msg)
