@@ -13,8 +13,6 @@ import os
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
-from contextlib import contextmanager
-
 import numpy as np
 import pytest
 
@@ -37,7 +35,7 @@ from mmpa.missions.teach_repeat import AutomationConfig, automate
 from mmpa.robot.backend_config import UR_JOINT_NAMES, BackendConfig, DirectBackend
 from mmpa.robot.description import CameraIntrinsics, default_robot, set_default_robot
 from mmpa.robot.interfaces import RGBDFrame, RobotDevices
-from mmpa.robot.robot_file import load_robot, robot_backend, robot_to_yaml
+from mmpa.robot.robot_file import robot_to_yaml
 
 T0 = 0.5
 
@@ -79,8 +77,8 @@ def recorded(tmp_path_factory):
 
 @pytest.fixture
 def cli(tmp_path, monkeypatch):
-    """A direct robot file per recording; the CLI opens its robot with open_direct and the
-    fake of RTDE handed in by connect_rtde."""
+    """A direct robot file per recording; the CLI opens its robot (apps.robots.open_robot ->
+    backends.direct.open_direct) with the fake of RTDE handed in by connect_rtde."""
     fakes: list[FakeRTDE] = []
     state = {"q0": None, "setup": None}
 
@@ -92,13 +90,6 @@ def cli(tmp_path, monkeypatch):
         return fake, fake
 
     monkeypatch.setattr(direct, "connect_rtde", connect)
-
-    @contextmanager
-    def open_hardware(p):
-        with direct.open_direct(robot_backend(p), load_robot(p)[0]) as robot:
-            yield robot
-
-    monkeypatch.setattr("mmpa.cli.tasks.open_hardware", open_hardware)
 
     def robot_file(rec, name):
         path = tmp_path / name

@@ -234,7 +234,7 @@ def teach(
     path, backend = backend_in_use()
     try:
         if backend.hardware:
-            with open_hardware(path) as robot:
+            with open_hardware(path, ("clock", "arm", "camera")) as robot:
                 summary = teach_on_hardware(
                     robot, site, task, kind=backend.kind, from_bag=from_bag,
                     sample_q=_joints(sample_q), rate_hz=rate, button=button,
@@ -284,7 +284,7 @@ def run_cmd(
     path, backend = backend_in_use()
     try:
         if backend.hardware:
-            with open_hardware(path) as robot:
+            with open_hardware(path, ("clock", "arm", "camera", "gripper")) as robot:
                 summary = run_stored_task_on_robot(
                     robot, task, db=db, kind=backend.kind,
                     confirm=confirmer(yes, backend), dry_run=dry_run,
