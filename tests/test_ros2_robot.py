@@ -147,8 +147,9 @@ def _check_parked(s: dict) -> None:
 
 def test_navigate_over_ros2_a_short_drive(tmp_path: Path) -> None:
     """0.3 m straight ahead of site 0 on the twin node, over /cmd_vel, /scan, /odom, /map,
-    /reflectors. Measured (three runs): parked 3.5-5.5 mm / 0.10-0.15 deg from the goal by
-    the truth (the real-time loop is not bit-reproducible); bounds 10 mm / 0.5 deg."""
+    /reflectors. Measured: parked 5.5 mm / 0.15 deg from the goal by the truth (3.5 mm /
+    0.10 deg toward a goal turned by 0.13 rad; the real-time loop is not bit-reproducible);
+    bounds 10 mm / 0.5 deg."""
     x, y, th = load_scene().site("0").pose2d
     goal = f"{x + 0.3 * np.cos(th):.4f},{y + 0.3 * np.sin(th):.4f},{th:.5f}"
     summary, _ = _navigate(tmp_path, goal, 240.0)
@@ -158,8 +159,9 @@ def test_navigate_over_ros2_a_short_drive(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_navigate_over_ros2_from_site_0_to_1(tmp_path: Path) -> None:
     """``mmpa --robot ros2.yaml navigate --to 1`` against the twin node (issue 35's "mmpa
-    navigate over the ROS 2 backends"). Measured: 22.8 s of the twin's clock, parked 3.8 mm
-    / 0.09 deg from site 1 by the truth (the twin path in-process: 3.6 mm / 0.14 deg)."""
+    navigate over the ROS 2 backends"). Measured (two runs): 22.8-24.1 s of the twin's clock,
+    parked 2.9-3.8 mm / 0.09-0.11 deg from site 1 by the truth (the twin path in-process:
+    3.6 mm / 0.14 deg)."""
     summary, _ = _navigate(tmp_path, "1", 400.0)
     _check_parked(summary)
 
