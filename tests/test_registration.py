@@ -525,7 +525,7 @@ def test_fine_motion_gate_lets_the_feature_matches_vote(monkeypatch) -> None:
     assert r.stages["fine_support"] >= 0.5 * r.stages["coarse_support"]
 
     def matches_of(T: np.ndarray):  # each source point's nearest target point under T
-        def corr(fs, ft, ps, pt, *a, **k):
+        def corr(pairs, ps, pt, *a, **k):  # in place of FGR's tuple test of the matches
             from scipy.spatial import cKDTree
 
             d, j = cKDTree(pt).query(ps @ T[:3, :3].T + T[:3, 3])
@@ -534,7 +534,7 @@ def test_fine_motion_gate_lets_the_feature_matches_vote(monkeypatch) -> None:
 
         return corr
 
-    monkeypatch.setattr(pl, "fgr_correspondences", matches_of(off))
+    monkeypatch.setattr(pl, "tuple_test", matches_of(off))
     r = register(src, tgt, vote)
     assert not r.ok and "fine stage moved" in r.reason
     assert r.stages["fine_support"] < 0.5 * r.stages["coarse_support"]

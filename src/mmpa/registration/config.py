@@ -96,6 +96,17 @@ class RegistrationConfig(_Frozen):
         (beyond the paper; invariant to a gain and offset of the lighting; 0 disables it;
         skipped where either side's intensity standard deviation there is below
         ``color_check_min_std``).
+    Competing poses (``ambiguity_check``: ``"global"`` registrations without ``init``,
+        ``"always"``, ``"off"``; :mod:`mmpa.registration.ambiguity`): the degeneracy test
+        again at the first ICP scale (normals of 2 cm voxels, whose noise does not hide a
+        free direction) against ``coarse_min_information``, then ICP from the accepted pose
+        moved by ``+-ambiguity_shift`` along its ``ambiguity_directions`` weakest directions
+        and from the ``ambiguity_modes`` translations most voted by the FPFH matches. An end
+        pose more than ``ambiguity_distance`` (RMS over the source) from the accepted one
+        whose colours correlate competes by the source points only one of the two explains:
+        with at least ``ambiguity_rival_ratio`` times the accepted pose's, it makes the pose
+        ambiguous (refused), unless the accepted pose explains fewer than
+        ``ambiguity_replace_ratio`` times its own: then it replaces the pose.
     ``seed`` seeds the random draws (FGR tuples). ``open3d_threads`` caps Open3D's worker
     threads during ``prepare`` and ``register`` (``None``: Open3D's default, all cores).
     """
@@ -148,6 +159,15 @@ class RegistrationConfig(_Frozen):
     min_color_correlation: float = Field(default=0.7, ge=0, le=1)
     color_check_min_std: float = Field(default=0.02, ge=0)
     degeneracy_max_points: int = Field(default=3000, ge=100)
+    # the competing-pose check (mmpa.registration.ambiguity; measurements: docs/registration.md)
+    ambiguity_check: Literal["global", "always", "off"] = "global"
+    coarse_min_information: float = Field(default=0.01, ge=0)
+    ambiguity_shift: float = Field(default=0.03, gt=0)
+    ambiguity_directions: int = Field(default=1, ge=0, le=6)
+    ambiguity_modes: int = Field(default=2, ge=0)
+    ambiguity_distance: float = Field(default=0.015, gt=0)
+    ambiguity_rival_ratio: float = Field(default=0.9, gt=0)
+    ambiguity_replace_ratio: float = Field(default=0.5, gt=0, le=1)
     seed: int = 0
     open3d_threads: int | None = Field(default=1, ge=1)
 

@@ -37,7 +37,7 @@ from scipy.spatial.distance import cdist
 from mmpa.core.geometry import Array
 from mmpa.registration._blas import single_threaded_blas
 
-__all__ = ["feature_support", "fgr_correspondences", "fgr_solve"]
+__all__ = ["feature_support", "fgr_correspondences", "fgr_solve", "mutual_matches", "tuple_test"]
 
 
 #: update (rad, normalised length) below which the line-process iteration has converged
@@ -186,16 +186,34 @@ def fgr_correspondences(
     ``(source, target)`` of the ``T`` accepted triples (the input of Open3D's
     ``registration_fgr_based_on_correspondence`` without its own tuple test).
     """
+    return tuple_test(mutual_matches(f_src, f_tgt), p_src, p_tgt, max_tuples, tuple_scale, rng)
+
+
+def mutual_matches(f_src: Array, f_tgt: Array) -> Array:
+    """Mutual nearest neighbours ``(i, j)`` (K, 2) of the descriptors ``f_src`` (N, d) and
+    ``f_tgt`` (M, d): ``j = argmin_j' |a_i - b_j'|`` and ``i = argmin_i' |a_i' - b_j|``, the
+    squared distances ``|a_i|^2 - 2 a_i . b_j + |b_j|^2`` from one matrix product."""
     a = np.asarray(f_src, np.float32)
     b = np.asarray(f_tgt, np.float32)
     if len(a) == 0 or len(b) == 0:
-        return np.zeros((0, 2), np.int32)
+        return np.zeros((0, 2), np.int64)
     # row-wise argmins of contiguous matrices (a column-wise argmin is ~15x slower)
     with single_threaded_blas():
         j_of_i = ((b * b).sum(axis=1)[None, :] - 2.0 * (a @ b.T)).argmin(axis=1)
         i_of_j = ((a * a).sum(axis=1)[None, :] - 2.0 * (b @ a.T)).argmin(axis=1)
     i = np.flatnonzero(i_of_j[j_of_i] == np.arange(len(a)))
-    pairs = np.stack([i, j_of_i[i]], axis=1)
+    return np.stack([i, j_of_i[i]], axis=1)
+
+
+def tuple_test(
+    pairs: Array,
+    p_src: Array,
+    p_tgt: Array,
+    max_tuples: int,
+    tuple_scale: float,
+    rng: np.random.Generator,
+) -> Array:
+    """FGR's tuple test of the matches ``pairs`` (K, 2) (:func:`fgr_correspondences`)."""
     k = len(pairs)
     if k < 3:
         return np.zeros((0, 2), np.int32)

@@ -37,9 +37,16 @@ import numpy as np
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array
 from mmpa.registration._blas import open3d_threads
+from mmpa.registration.ambiguity import competitors
 from mmpa.registration.checks import color_correlation, information_matrix, rmse_gate
 from mmpa.registration.config import IcpScale, RegistrationConfig
-from mmpa.registration.fgr import feature_support, fgr_correspondences, fgr_solve
+from mmpa.registration.fgr import (
+    feature_support,
+    fgr_correspondences,
+    fgr_solve,
+    mutual_matches,
+    tuple_test,
+)
 from mmpa.registration.icp import Fine, fine_stage
 from mmpa.registration.preprocess import Prepared, as_prepared, feature_matrix, prepare
 
@@ -143,16 +150,16 @@ def _methods(cfg: RegistrationConfig, both: bool) -> tuple[bool, ...]:
 
 def _coarse(
     src: Prepared, tgt: Prepared, cfg: RegistrationConfig, stages: dict[str, Any]
-) -> tuple[Array, Callable[[Array], int]]:
-    """The global stage: FPFH matches, FGR's pose, and the matches' vote
-    (:func:`~mmpa.registration.fgr.feature_support`)."""
+) -> tuple[Array, Callable[[Array], int], Array]:
+    """The global stage: FPFH matches, FGR's pose, the matches' vote
+    (:func:`~mmpa.registration.fgr.feature_support`) and the mutual matches."""
     t1 = time.perf_counter()
     fs, ft = src.fpfh(cfg), tgt.fpfh(cfg)
     stages["features_s"] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    corr = fgr_correspondences(
-        feature_matrix(src, fs),
-        feature_matrix(tgt, ft),
+    matches = mutual_matches(feature_matrix(src, fs), feature_matrix(tgt, ft))
+    corr = tuple_test(
+        matches,
         np.asarray(src.coarse.points),
         np.asarray(tgt.coarse.points),
         cfg.fgr_max_tuples,
@@ -173,7 +180,7 @@ def _coarse(
     support = feature_support(
         np.asarray(src.coarse.points), np.asarray(tgt.coarse.points), corr, cfg.coarse_voxel
     )
-    return T0, support
+    return T0, support, matches
 
 
 def _refine(
@@ -233,8 +240,9 @@ def _register(
         )
     methods = _methods(cfg, both)
     support: Callable[[Array], int] | None
+    matches = None
     if init is None:
-        T0, support = _coarse(src, tgt, cfg, stages)
+        T0, support, matches = _coarse(src, tgt, cfg, stages)
         scales = cfg.scales
         limits = (cfg.max_fine_shift, cfg.max_fine_rotation_deg, "coarse")
     else:
@@ -249,4 +257,70 @@ def _register(
     stages["normals_s"] = time.perf_counter() - t1
     fine = _refine(src, tgt, T0, scales, methods, cfg, stages, limits, init, support)
     stages["min_information"] = fine.information
+    if fine.ok and (
+        cfg.ambiguity_check == "always" or (cfg.ambiguity_check == "global" and init is None)
+    ):
+        fine = _unique(src, tgt, fine, methods, cfg, stages, matches, support)
     return _result(fine.T, fine.ok, fine.reason, stages, t0, fine.fitness, fine.rmse, fine.n)
+
+
+def _unique(
+    src: Prepared,
+    tgt: Prepared,
+    fine: Fine,
+    methods: tuple[bool, ...],
+    cfg: RegistrationConfig,
+    stages: dict[str, Any],
+    matches: Array | None,
+    support: Callable[[Array], int] | None,
+) -> Fine:
+    """The competing-pose check (:mod:`~mmpa.registration.ambiguity`) of an accepted
+    ``fine``: refused when degenerate at the coarse scale or when a distinct pose explains
+    nearly as many points that ``fine`` does not as the other way round; replaced (once) by
+    one that clearly explains more and passes every check itself."""
+    for round_ in range(2):
+        found = competitors(src, tgt, fine.T, cfg, matches, stages)
+        lam = stages["coarse_information"]
+        if lam < cfg.coarse_min_information:
+            return fine._replace(
+                ok=False,
+                reason=f"degenerate geometry at the {cfg.scales[0].voxel * 1e2:.0f} cm scale: "
+                f"the direction {stages['coarse_weak_direction']} is not constrained "
+                f"(information {lam:.2e} < {cfg.coarse_min_information:.1e}; a corridor, a "
+                "plane: the noise of the finer normals hid it)",
+            )
+        stages["ambiguity_competitors"] = [
+            (c.start, round(c.distance * 1e3, 2), c.only_this, c.only_accepted) for c in found
+        ]
+        rivals = [
+            c
+            for c in found
+            if c.distance > cfg.ambiguity_distance
+            and c.color >= cfg.min_color_correlation
+            and c.only_this >= cfg.ambiguity_rival_ratio * c.only_accepted
+        ]
+        better = [c for c in rivals if c.only_accepted < cfg.ambiguity_replace_ratio * c.only_this]
+        best = max(rivals, key=lambda c: c.only_this - c.only_accepted, default=None)
+        if best is None:
+            stages["ambiguity_rounds"] = round_ + 1
+            return fine
+        what = (
+            f"the competing pose {best.start} ({best.distance * 1e3:.1f} mm RMS away) "
+            f"explains {best.only_this} points the pose does not, the pose "
+            f"{best.only_accepted} it does not"
+        )
+        if len(better) < len(rivals) or round_ == 1:
+            return fine._replace(
+                ok=False,
+                reason=f"ambiguous pose: {what} (a repeated structure, or the scene slides "
+                "along a direction it hardly constrains)",
+            )
+        # a clearly better pose: it must pass every check itself, then face its own rivals
+        limits = (cfg.max_fine_shift, cfg.max_fine_rotation_deg, "competing")
+        stages["ambiguity_replaced"] = what
+        fine = _refine(
+            src, tgt, best.T, cfg.init_scales, methods, cfg, stages, limits, None, support
+        )
+        if not fine.ok:
+            return fine
+    return fine
