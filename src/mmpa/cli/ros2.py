@@ -3,6 +3,7 @@ passes what follows it (``--ros-args -p name:=value --params-file FILE ...``) to
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -91,3 +92,31 @@ def twin_cmd(
         f"twin: {stats.sim_s:.1f} sim s in {stats.wall_s:.1f} s "
         f"(real-time factor {stats.real_time_factor:.2f}), {len(stats.refused)} refused"
     )
+
+
+@ros2_app.command("play", context_settings=ROS_ARGS)
+def play_cmd(
+    ctx: typer.Context,
+    bag: Annotated[Path, typer.Argument(help="The bag (FILE.mcap, a rosbag2 folder).")],
+    rate: Annotated[float, typer.Option(help="Bag seconds per wall second.", min=0.001)] = 1.0,
+    loop: Annotated[bool, typer.Option("--loop", help="Play it again and again.")] = False,
+    delay: Annotated[
+        float, typer.Option(help="Wall seconds to wait before the first message.", min=0.0)
+    ] = 0.0,
+    topics: Annotated[
+        list[str] | None, typer.Option("--topic", help="Only this topic (repeat it).")
+    ] = None,
+) -> None:
+    """Publish a bag's messages as recorded (the stored bytes, the recorded QoS) with /clock
+    (docs/ros2.md; ROS arguments after --ros-args)."""
+    try:
+        from mmpa.apps.ros2_play import PlayConfig, play_bag
+    except ImportError as e:
+        fail(MMPAError(f"the ros2 extra is missing ({e}); make setup installs it"))
+    try:
+        cfg = PlayConfig(rate=rate, loop=loop, delay=delay, topics=topics or None)
+        stats = play_bag(bag, cfg, ["mmpa", *ctx.args])
+    except MMPAError as e:
+        fail(e)
+    n = sum(stats.published.values())
+    console.print(f"played {n} messages on {len(stats.published)} topics in {stats.wall_s:.1f} s")
