@@ -11,10 +11,12 @@ import os
 import signal
 import subprocess
 import sys
+import time
 import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 MMPA = [sys.executable, "-c", "from mmpa.cli.main import main; main()"]
 
@@ -59,3 +61,44 @@ def stop(proc: subprocess.Popen, log: Path | None = None) -> str:
             proc.kill()
             proc.wait()
     return log.read_text() if log is not None and log.exists() else ""
+
+
+class RawRecorder:
+    """Records topics of a running graph as a bag does: each message's serialized bytes
+    (``raw=True`` subscriptions) with its type and the receive time, then :meth:`write` puts
+    them in an MCAP file with ``rosbags``' writer (schemas from the Jazzy type store with the
+    interfaces mmpa builds)."""
+
+    def __init__(self, node: Any, topics: dict[str, tuple[str, Any]]) -> None:
+        from mmpa.backends.ros2 import messages
+
+        self.types = {t: name for t, (name, _) in topics.items()}
+        self.got: list[tuple[str, int, bytes]] = []
+        self.subs = [
+            node.create_subscription(
+                messages.message_class(name),
+                topic,
+                lambda raw, topic=topic: self.got.append((topic, time.time_ns(), raw)),
+                qos,
+                raw=True,
+            )
+            for topic, (name, qos) in topics.items()
+        ]
+
+    def write(self, path: Path) -> Path:
+        """The MCAP file ``path`` of what was recorded."""
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        from mmpa.backends.ros2 import messages
+
+        folder = path.with_suffix(".part")
+        with Writer(folder, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+            conns = {
+                t: w.add_connection(t, name, typestore=messages.typestore())
+                for t, name in self.types.items()
+                if any(topic == t for topic, _, _ in self.got)
+            }
+            for topic, ns, raw in self.got:
+                w.write(conns[topic], ns, raw)
+        (folder / f"{folder.name}.mcap").replace(path)
+        return path

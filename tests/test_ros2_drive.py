@@ -36,7 +36,7 @@ pytest.importorskip(
     "rclpy", reason="the ros2 extra is not installed (make setup installs it on x86-64 Linux)"
 )
 
-from tests.ros2_support import ros_domain, start, stop
+from tests.ros2_support import RawRecorder, ros_domain, start, stop
 
 from mmpa.backends.bag import messages as bag
 from mmpa.backends.ros2 import graph, localization_msgs, messages
@@ -172,8 +172,27 @@ def _cpu() -> float:
     return sum(x.ru_utime + x.ru_stime for x in r)
 
 
-def _run(tmp_path: Path, method: str, params: str, sim_s: float) -> dict[str, Any]:
-    """Twin + localization node + this driver; the errors at the last update."""
+#: the nodes' topics recorded during the default test (type, QoS)
+RECORDED = {
+    "/scan": ("sensor_msgs/msg/LaserScan", graph.SENSOR_DATA),
+    "/odom": ("nav_msgs/msg/Odometry", graph.TF),
+    "/tf": ("tf2_msgs/msg/TFMessage", graph.TF),
+    "/tf_static": ("tf2_msgs/msg/TFMessage", graph.LATCHED),
+    "/map": ("nav_msgs/msg/OccupancyGrid", graph.LATCHED),
+    "/reflectors": ("visualization_msgs/msg/MarkerArray", graph.LATCHED),
+    "/joint_states": ("sensor_msgs/msg/JointState", graph.TF),
+    "/clock": ("rosgraph_msgs/msg/Clock", graph.TF),
+    "/amcl_pose": ("geometry_msgs/msg/PoseWithCovarianceStamped", graph.LATCHED),
+    "/particle_cloud": ("nav2_msgs/msg/ParticleCloud", graph.SENSOR_DATA),
+    "/diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", graph.TF),
+}
+
+
+def _run(
+    tmp_path: Path, method: str, params: str, sim_s: float, record: Path | None = None
+) -> dict[str, Any]:
+    """Twin + localization node + this driver; the errors at the last update. ``record``:
+    write the nodes' topics (:data:`RECORDED`) to this MCAP file."""
     site0, site1 = (load_scene().site(s).pose2d for s in ("0", "1"))
     start_pose = [float(v) for v in site0 + START_OFFSET]
     pfile = tmp_path / "amcl.yaml"
@@ -196,6 +215,7 @@ def _run(tmp_path: Path, method: str, params: str, sim_s: float) -> dict[str, An
         try:
             with graph.Session("mmpa_test_driver") as s:
                 d = Driver(s)
+                rec = None if record is None else RawRecorder(s.node, RECORDED)
                 logs = lambda: twin_log.read_text()[-3000:] + loc_log.read_text()[-3000:]  # noqa: E731
                 assert graph.wait_until_matched(d.cmd_vel, 1, TIMEOUT), logs()
                 # the node localizes the twin standing at site 0 before it moves
@@ -206,6 +226,8 @@ def _run(tmp_path: Path, method: str, params: str, sim_s: float) -> dict[str, An
                 assert s.spin_until(lambda: _last_pose_checked(d) is not None, TIMEOUT), logs()
         finally:
             text = stop(loc, loc_log) + stop(twin, twin_log)
+    if rec is not None:
+        rec.write(record)
     cpu = _cpu() - cpu0
     t, pose = _last_pose_checked(d)
     truth = d.truth[t]
@@ -231,11 +253,60 @@ def _check(r: dict[str, Any], tol: float) -> None:
 
 
 def test_drive_a_stretch_enhanced_within_10_mm(tmp_path: Path) -> None:
-    """1.5 sim s of the drive from site 0 towards site 1 (turning to face it, then driving)."""
-    r = _run(tmp_path, "enhanced", NAV2_DEFAULTS, 1.5)
+    """1.5 sim s of the drive from site 0 towards site 1 (turning to face it, then driving);
+    the nodes' topics recorded meanwhile decode with an independent reader (:func:`_decode`)."""
+    r = _run(tmp_path, "enhanced", NAV2_DEFAULTS, 1.5, tmp_path / "nodes.mcap")
     print({k: v for k, v in r.items() if k != "log"})
     assert r["updates"] >= 2, r
     _check(r, 0.010)
+    _decode(tmp_path / "nodes.mcap")
+
+
+def _same(a: Any, b: Any, path: str = "") -> None:
+    """``a`` (rclpy) and ``b`` (mcap_ros2's decoded object) hold the same values, field by
+    field (arrays elementwise, NaN equal to NaN)."""
+    if hasattr(a, "get_fields_and_field_types"):
+        for name in a.get_fields_and_field_types():
+            _same(getattr(a, name), getattr(b, name), f"{path}.{name}")
+    elif isinstance(a, bytes) and isinstance(b, int):  # a byte field: rclpy b'\x02', mcap 2
+        assert a == bytes([b]), (path, a, b)
+    elif isinstance(a, str | bool | int) or a is None:
+        assert a == b, (path, a, b)
+    elif isinstance(a, float):
+        assert a == b or (np.isnan(a) and np.isnan(b)), (path, a, b)
+    elif isinstance(a, list | tuple) and a and hasattr(a[0], "get_fields_and_field_types"):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _same(x, y, f"{path}[{i}]")
+    else:  # numeric arrays (array.array, numpy), bytes
+        x, y = np.asarray(a), np.asarray(b)
+        if x.dtype.kind == "S" or y.dtype.kind == "S":
+            assert bytes(a) == bytes(b), path
+        else:
+            assert np.array_equal(x, y, equal_nan=x.dtype.kind == "f"), path
+
+
+def _decode(path: Path) -> None:
+    """The MCAP file of the nodes' topics read with mcap + mcap-ros2-support (which knows no
+    mmpa code: it decodes with the schemas the file carries): every message of every topic
+    with its standard type name, each equal field by field to rclpy's deserialization of the
+    same bytes (the built TFMessage's type hash equals rosbags': tests/test_ros2.py)."""
+    pytest.importorskip("mcap_ros2", reason="mcap-ros2-support is not installed (extra dev)")
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    from rclpy.serialization import deserialize_message
+
+    counts: dict[str, int] = {}
+    with path.open("rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, channel, raw, decoded in reader.iter_decoded_messages():
+            topic = channel.topic
+            name = RECORDED[topic][0]
+            assert (schema.name, schema.encoding) == (name, "ros2msg"), topic
+            _same(deserialize_message(raw.data, messages.message_class(name)), decoded, topic)
+            counts[topic] = counts.get(topic, 0) + 1
+    assert set(RECORDED) - set(counts) <= {"/particle_cloud"}, counts  # enhanced: no cloud
+    assert counts["/scan"] >= 10 and counts["/tf"] >= 50, counts
 
 
 @pytest.mark.slow
