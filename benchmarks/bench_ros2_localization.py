@@ -89,6 +89,56 @@ def _library_times(n: int) -> list[float]:
     return out
 
 
+def _callback_times(n: int) -> tuple[list[float], list[float]]:
+    """The node's scan callback in this process, fed the same messages directly (no DDS):
+    its wall time per scan and the localizer's update time inside it."""
+    import yaml
+
+    from mmpa.apps.ros2_localization import LocalizationNode
+
+    params = yaml.safe_load(seq.PARAMS)["amcl"]["ros__parameters"]
+    start = seq._truth(0) + seq.START_ERROR
+    params |= {"base_frame_id": "base_link", "set_initial_pose": True, "seed": 1}
+    params |= {"initial_pose.x": start[0], "initial_pose.y": start[1]}
+    params["initial_pose.yaw"] = start[2]
+    args = ["bench", "--ros-args"]
+    for k, v in params.items():
+        args += ["-p", f"{k}:={v}"]
+    grid = seq._grid()
+    with graph.Session("amcl", args) as s:
+        node = LocalizationNode(s)
+        node.on_map(messages.to_rclpy(seq.bag.occupancy_grid(grid, seq.T0)))
+        mount = se2_to_T(*seq.MOUNT)
+        node.on_tf(messages.tf_message(seq.T0, [("base_link", "lidar_mount", mount)]), True)
+        rng = np.random.default_rng(3)
+        wall = []
+        for k in range(n):
+            t = seq.T0 + seq.DT * k
+            node.on_tf(
+                messages.tf_message(t, [("odom", "base_link", se2_to_T(*seq._odom(k)))]), False
+            )
+            msg = messages.laser_scan(seq._scan(grid, k, rng))
+            t0 = time.perf_counter()
+            node.on_scan(msg)
+            wall.append(time.perf_counter() - t0)
+        return wall[1:], node.update_times[1:]  # the first builds the localizer
+
+
+def _scan_to_numpy(reps: int = 2000) -> tuple[float, float]:
+    """Median s of ``from_laser_scan`` (the whole LaserScan) and ``scan_ranges`` (the ranges
+    as a numpy view) on a 1440-beam message."""
+    msg = messages.laser_scan(seq._scan(seq._grid(), 0, np.random.default_rng(0)))
+    out = []
+    for f in (messages.from_laser_scan, messages.scan_ranges):
+        ts = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            f(msg)
+            ts.append(time.perf_counter() - t0)
+        out.append(float(np.median(ts)))
+    return out[0], out[1]
+
+
 def _row(name: str, xs: list[float]) -> str:
     a = 1e3 * np.asarray(xs)
     med, p95 = np.median(a), np.percentile(a, 95)
@@ -107,10 +157,17 @@ def main() -> None:
         os.environ.setdefault("ROS_LOG_DIR", tmp)
         lat = _node_latencies(a.scans, a.period, Path(tmp))
     lib = _library_times(a.scans)
+    cb, cb_update = _callback_times(a.scans)
+    full, view = _scan_to_numpy()
     print(f"1440 beams, {a.scans} scans, one every {a.period} s")
     print(_row("node: scan published -> /amcl_pose", lat))
     print(_row("library: update()", lib))
     print(f"node overhead (medians): {1e3 * (np.median(lat) - np.median(lib)):.2f} ms")
+    print(f"latency / library (medians): {np.median(lat) / np.median(lib):.2f}")
+    print(_row("node callback (no DDS): on_scan", cb))
+    print(_row("  its update() inside", cb_update))
+    print(f"callback / its update (medians): {np.median(cb) / np.median(cb_update):.2f}")
+    print(f"scan -> numpy: from_laser_scan {1e6 * full:.1f} us, scan_ranges {1e6 * view:.2f} us")
 
 
 if __name__ == "__main__":

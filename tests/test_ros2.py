@@ -195,3 +195,20 @@ def test_tf_message_crosses_processes_over_dds(
     # rotation -> quaternion -> rotation in float64: ~1e-16; 1e-12 leaves a margin of 1e4
     np.testing.assert_allclose(T0, planar, rtol=0, atol=1e-12)
     np.testing.assert_allclose(T1, make_T(R, [0.2, 0.0, 0.35]), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize(("n", "frame_id"), [(0, "map"), (1, "m"), (7, "abcdefgh"), (1000, "map")])
+def test_particle_cloud_bytes_equal_the_serializers(n: int, frame_id: str) -> None:
+    """The numpy-built ParticleCloud bytes == rosbags' serialization of rclpy's message (which
+    zeroes the padding rclpy leaves as it finds it), and rclpy reads them back to the same
+    particles."""
+    from mmpa.backends.ros2 import localization_msgs as lm
+
+    rng = np.random.default_rng(n)
+    P, w = rng.normal(size=(n, 3)), rng.random(n)
+    ref = lm.particle_cloud(12.3456789, frame_id, P, w)
+    raw = lm.particle_cloud_cdr(12.3456789, frame_id, P, w)
+    name = "nav2_msgs/msg/ParticleCloud"
+    assert raw == bytes(messages.typestore().serialize_cdr(messages.from_rclpy(ref), name))
+    back = deserialize_message(raw, type(ref))
+    assert back == ref

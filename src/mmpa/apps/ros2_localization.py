@@ -370,8 +370,10 @@ class LocalizationNode:
             self._published = True
         parts = getattr(self.loc, "particles", None)
         if parts is not None and len(parts):
-            self.cloud_pub.publish(
-                localization_msgs.particle_cloud(stamp, s.global_frame_id, parts, self.loc.weights)
+            self.cloud_pub.publish(  # the bytes, built with numpy (raw publishing)
+                localization_msgs.particle_cloud_cdr(
+                    stamp, s.global_frame_id, parts, self.loc.weights
+                )
             )
         if s.tf_broadcast:
             map_odom = se2_compose(pose, se2_inv(odom))

@@ -6,7 +6,8 @@
 - :func:`pose_with_covariance`: ``geometry_msgs/PoseWithCovarianceStamped`` (``/amcl_pose``)
   of a planar pose ``[x, y, theta]`` and its (3, 3) covariance (rows x, y, yaw of ROS's 6x6);
 - :func:`particle_cloud`: ``nav2_msgs/ParticleCloud`` (``/particle_cloud``): planar poses
-  (N, 3) with their weights;
+  (N, 3) with their weights; :func:`particle_cloud_cdr` the same as its serialized bytes,
+  built with numpy (what the node publishes: 1000 particles as rclpy objects cost ~19 ms);
 - :func:`from_reflector_markers`: ``visualization_msgs/MarkerArray`` (``/reflectors``, one
   cylinder per surveyed reflector, as :func:`mmpa.backends.bag.messages.reflector_markers`
   draws them) -> positions (N, 2) m in the markers' frame and the radius m;
@@ -19,6 +20,7 @@ where one exists (same bytes as a bag holds), else filled directly.
 
 from __future__ import annotations
 
+import struct
 from typing import Any
 
 import numpy as np
@@ -34,6 +36,7 @@ __all__ = [
     "from_occupancy_grid",
     "from_reflector_markers",
     "particle_cloud",
+    "particle_cloud_cdr",
     "planar",
     "pose_with_covariance",
     "stamp_of",
@@ -138,6 +141,28 @@ def particle_cloud(stamp: float, frame_id: str, particles: Array, weights: Array
         out.append(p)
     cloud.particles = out
     return cloud
+
+
+def particle_cloud_cdr(stamp: float, frame_id: str, particles: Array, weights: Array) -> bytes:
+    """:func:`particle_cloud`'s serialized bytes (CDR little endian with its encapsulation
+    header, as ``rclpy.serialization.serialize_message`` writes them, with zeros in the
+    padding as ``rosbags`` writes it), for raw publishing.
+
+    Layout (offsets from the end of the 4-byte encapsulation header, CDR aligns each
+    primitive to its size): ``int32 sec, uint32 nanosec, uint32 len, frame_id + NUL``, pad to
+    4, ``uint32 count``, pad to 8 (when there is a particle), then per particle 8 float64:
+    position x, y, z, orientation x, y, z, w, weight."""
+    P = np.asarray(particles, float).reshape(-1, 3)
+    sec, nsec = divmod(bag.stamp_ns(stamp), 1_000_000_000)
+    fid = frame_id.encode() + b"\0"
+    body = struct.pack("<iII", sec, nsec, len(fid)) + fid
+    body += b"\0" * (-len(body) % 4) + struct.pack("<I", len(P))
+    body += b"\0" * (-len(body) % 8 if len(P) else 0)
+    rows = np.zeros((len(P), 8))
+    rows[:, :2] = P[:, :2]
+    rows[:, 5], rows[:, 6] = np.sin(0.5 * P[:, 2]), np.cos(0.5 * P[:, 2])
+    rows[:, 7] = np.asarray(weights, float).reshape(-1)
+    return b"\x00\x01\x00\x00" + body + rows.astype("<f8").tobytes()
 
 
 def diagnostics(stamp: float, name: str, ok: bool, message: str, values: dict[str, Any]) -> Any:
