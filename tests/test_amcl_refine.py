@@ -152,7 +152,9 @@ def test_nav2_values_stay_selectable() -> None:
     p = AMCLConfig.paper()
     assert (p.laser_model_type, p.sigma_hit, p.scan_refine) == ("likelihood_field", 0.2, False)
     assert (p.alpha1, p.z_hit, p.z_rand, p.max_particles) == (0.2, 0.5, 0.5, 2000)
-    assert not AMCLConfig.sparse_scans().scan_refine
+    assert (p.update_min_d, p.update_min_a) == (0.25, 0.2)
+    sp = AMCLConfig.sparse_scans()
+    assert not sp.scan_refine and (sp.update_min_d, sp.update_min_a) == (0.25, 0.2)
     assert EnhancedConfig().amcl == p
     # the AMCL inside enhanced is Nav2's, plus what the amcl section changes
     assert amcl_of(LocalizationConfig(method="enhanced")) == p

@@ -22,10 +22,11 @@ __all__ = ["AMCLConfig", "EnhancedConfig", "ObserverConfig"]
 class AMCLConfig(BaseModel):
     """Nav2 AMCL parameters (names as in ``nav2_params.yaml``) and the scan refinement.
 
-    Defaults: Nav2's, but for three (issue 34: Nav2's defaults diverge on real buildings whose
+    Defaults: Nav2's, but for four (issue 34: Nav2's defaults diverge on real buildings whose
     scans are 0.7-1 m apart; measurements in ``docs/localization.md`` "Real logs"):
     ``laser_model_type = likelihood_field_prob`` (a likelihood, not Nav2's sum of cubes),
-    ``sigma_hit = 0.1`` and ``scan_refine`` on. :meth:`paper` is Nav2's defaults throughout.
+    ``sigma_hit = 0.1``, ``update_min_d`` / ``update_min_a`` 0.05 and ``scan_refine`` on.
+    :meth:`paper` is Nav2's defaults throughout.
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -58,8 +59,14 @@ class AMCLConfig(BaseModel):
     # that scaled by sqrt(60 / 10): the 60 beams are taken as ~10 independent ones (their
     # errors are shared: the map's cells, the reference, neighbouring beams)
     sigma_hit: float = Field(0.1, gt=0)
-    update_min_a: float = Field(0.2, ge=0)
-    update_min_d: float = Field(0.25, ge=0)
+    # rad / m moved since the last filter update before the next (Nav2: 0.2 / 0.25). 0.05 /
+    # 0.05: a 5 cm map cell, or a turn that moves an endpoint at 1 m by one. Between updates
+    # the estimate follows the odometry alone: on freiburg-079 (scans ~9 cm apart) Nav2's
+    # 0.25 m skips two scans in three, and where the wheels report 0.1 m forward per scan
+    # while the reference moves 0.1 m back (scans 905-917) the filter was lost (1.3 m at scan
+    # 915); standing still there is still no update (repeated scans are not independent)
+    update_min_a: float = Field(0.05, ge=0)
+    update_min_d: float = Field(0.05, ge=0)
     z_hit: float = Field(0.5, ge=0)
     z_max: float = Field(0.05, ge=0)
     z_rand: float = Field(0.5, ge=0)
@@ -92,7 +99,13 @@ class AMCLConfig(BaseModel):
     def paper(cls) -> AMCLConfig:
         """The AMCL paper 001 compares against and runs inside Algorithm 1: Nav2's defaults
         (Nav2's sum-of-cubes likelihood field, ``sigma_hit = 0.2``, no scan refinement)."""
-        return cls(laser_model_type="likelihood_field", sigma_hit=0.2, scan_refine=False)
+        return cls(
+            laser_model_type="likelihood_field",
+            sigma_hit=0.2,
+            update_min_a=0.2,
+            update_min_d=0.25,
+            scan_refine=False,
+        )
 
     @classmethod
     def sparse_scans(cls) -> AMCLConfig:
@@ -110,6 +123,8 @@ class AMCLConfig(BaseModel):
             z_hit=0.95,
             z_rand=0.05,
             sigma_hit=0.1,
+            update_min_a=0.2,
+            update_min_d=0.25,
             scan_refine=False,
         )
 
