@@ -12,8 +12,11 @@ Sources of the demonstration (a :data:`~mmpa.missions.teach_repeat.Recorder`):
 
 - a UR over RTDE: freedrive (teach mode) read every control period, kept at ``rate_hz``
   (:meth:`mmpa.backends.ur.URArm.record_freedrive`);
-- any other arm (ROS 2 ``/joint_states`` while the person uses the teach pendant): its
-  ``joint_positions()`` sampled at ``rate_hz`` (:func:`~mmpa.missions.teach_repeat.joint_recorder`);
+- a ROS 2 arm (``/joint_states`` while the person uses the teach pendant or guides it):
+  every message between the presses, kept at ``rate_hz``, timed by its stamp
+  (:meth:`mmpa.backends.ros2.devices.arm.Ros2Arm.record_joint_states`);
+- any other arm: its ``joint_positions()`` sampled at ``rate_hz``
+  (:func:`~mmpa.missions.teach_repeat.joint_recorder`);
 - a recorded demonstration: ``/joint_states`` of a bag (:func:`bag_recorder`).
 
 Start and stop: a key (Enter, :class:`KeyPresses`) or a digital input of the controller
@@ -102,8 +105,10 @@ def person_recorder(
     gripper: Callable[[], float] | None = None,
 ) -> Recorder:
     """The demonstration of a person guiding ``robot``'s arm (module docstring): UR
-    freedrive over RTDE for a :class:`URArm`, else ``joint_positions()`` sampled at
-    ``rate_hz`` on the robot's clock; from the first press of ``button`` to the second."""
+    freedrive over RTDE for a :class:`URArm`; a ROS 2 arm's ``/joint_states`` messages
+    between the presses, by their stamps (``record_joint_states``); else
+    ``joint_positions()`` sampled at ``rate_hz`` on the robot's clock; from the first press
+    of ``button`` to the second."""
     require(robot, "arm", mission="recording a demonstration")
     arm = robot.arm
     if isinstance(arm, URArm):
@@ -115,6 +120,14 @@ def person_recorder(
             return trajectory_recorder(t, q, rate_hz, g)()
 
         return record
+    on_topic = getattr(arm, "record_joint_states", None)  # a ROS 2 arm: by the stamps
+    if on_topic is not None:
+
+        def record_topic() -> tuple[Array, Array, Array, float]:
+            t, q, g = on_topic(rate_hz, button, max_seconds=max_seconds, gripper=gripper)
+            return trajectory_recorder(t, q, rate_hz, g)()
+
+        return record_topic
     return joint_recorder(robot, rate_hz, button, max_seconds=max_seconds, gripper=gripper)
 
 

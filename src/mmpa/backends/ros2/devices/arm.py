@@ -25,6 +25,9 @@
   (:func:`mmpa.robot.limits.limit_setpoint`, ``dt`` the robot clock's elapsed time) and
   publishes each set-point as ``std_msgs/Float64MultiArray`` on ``topics.arm_stream`` (a
   ros2_control forward position controller applies it as it is);
+- ``record_joint_states(rate_hz, button)``: a person's demonstration (the arm guided by
+  hand or jogged on the teach pendant) as ``/joint_states`` showed it: every message
+  between two presses of a button, kept at ``rate_hz``, times from their stamps;
 - watchdog: ``/joint_states`` silent for ``safety.watchdog_s`` wall s stops the stream and
   fails any motion or command with a message naming the topic; ``stopped()`` says so.
 
@@ -43,11 +46,12 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from mmpa.backends.ros2 import graph
 from mmpa.backends.ros2.devices.node import DeviceTimeoutError, RobotNode, Ros2DeviceConfig
 from mmpa.backends.ros2.localization_msgs import stamp_of
 from mmpa.backends.ros2.messages import message_class
@@ -65,6 +69,13 @@ from mmpa.robot.limits import (
 )
 
 __all__ = ["Ros2Arm", "Ros2Gripper", "min_jerk_path", "scaled_limits"]
+
+#: ``/joint_states``: best effort, volatile (matches any driver's publisher) as the sensor
+#: data profile, but keep last 100 (2 s at 50 Hz, 0.2 s at 500 Hz): a recorded demonstration
+#: loses no message while the executor catches up
+JOINT_STATES_QOS = QoSProfile(
+    depth=100, reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE
+)
 
 #: peak |velocity| and |acceleration| of the minimum-jerk profile over a unit move in unit time
 MIN_JERK_V = 15.0 / 8.0
@@ -123,6 +134,13 @@ def _joint_reader(names: tuple[str, ...]) -> Any:
     return read
 
 
+def _last_poll(polls: list[tuple[float, float]], stamp: float) -> float:
+    """The value of the last poll ``(stamp, value)`` at or before ``stamp`` (the first
+    one before them all)."""
+    k = max(0, int(np.searchsorted([p[0] for p in polls], stamp, side="right")) - 1)
+    return polls[k][1] if polls else 0.0
+
+
 def _duration(msg: Any, t: float) -> None:
     ns = round(t * 1e9)
     msg.sec, msg.nanosec = divmod(ns, 1_000_000_000)
@@ -153,7 +171,7 @@ class Ros2Arm(StreamLimitsSwitch):
         self.speed_scale = float(safety.speed_scale)
         self.watchdog_s = float(safety.watchdog_s)
         self.joints = node.subscribe(
-            "arm", topics.joint_states, "sensor_msgs/msg/JointState", graph.SENSOR_DATA,
+            "arm", topics.joint_states, "sensor_msgs/msg/JointState", JOINT_STATES_QOS,
             convert=_joint_reader(self.names),
         )  # fmt: skip
         traj, stream = topics.arm_trajectory, topics.arm_stream
@@ -304,6 +322,72 @@ class Ros2Arm(StreamLimitsSwitch):
                     "refuse it (see its log)?"
                 )
         return None if record_hz is None else (np.array(rec_t), np.array(rec_q))
+
+    # ------------------------------------------------------------------ teaching
+    def record_joint_states(
+        self,
+        rate_hz: float,
+        button: Callable[[], bool],
+        max_seconds: float = 600.0,
+        gripper: Callable[[], float] | None = None,
+    ) -> tuple[Array, Array, Array]:
+        """A person's demonstration seen on ``/joint_states`` (module docstring).
+
+        ``button`` (True once per press) is polled every ``1 / rate_hz`` s of the robot's
+        clock. Kept: the messages stamped after the one current at the first press, up to
+        and including the one current at the second press, thinned to ``rate_hz`` (a message
+        is kept when its stamp is at least ``1 / rate_hz`` minus a quarter period after the
+        last kept one: every message when the arm publishes at ``rate_hz`` or slower).
+        Returns ``t`` (N,) s from the first kept stamp, ``q`` (N, 6) rad, and the gripper
+        state (N,) in [0, 1] polled from ``gripper`` (0 without) at the last poll before each
+        sample's arrival. Over ``max_seconds`` of the robot's clock: :class:`MMPAError`; the
+        watchdog as every motion's."""
+        if not (np.isfinite(rate_hz) and rate_hz > 0):
+            raise InvalidInputError(f"rate_hz must be a positive rate, got {rate_hz}")
+        dt = 1.0 / float(rate_hz)
+        self.stop_stream()
+        self._wait_press(button, dt, max_seconds, "start")
+        J = self.joints
+        kept = J.tap()
+        try:
+            t_on = float(J.msg[0])
+            polls = self._wait_press(button, dt, max_seconds, "end", gripper)
+            t_off = float(J.msg[0])
+        finally:
+            J.untap(kept)
+        t, q, g = [], [], []
+        for stamp, qk in kept:
+            if t_on < stamp <= t_off and (not t or stamp - t[-1] >= dt * 0.75):
+                t.append(float(stamp))
+                q.append(np.asarray(qk, float).copy())
+                g.append(_last_poll(polls, stamp))
+        if len(t) < 2:
+            raise MMPAError(
+                f"arm: {len(t)} /joint_states sample(s) between the presses: press, guide "
+                "the arm, press again (is the driver publishing?)"
+            )
+        return np.array(t) - t[0], np.array(q), np.array(g)
+
+    def _wait_press(
+        self,
+        button: Callable[[], bool],
+        dt: float,
+        max_seconds: float,
+        what: str,
+        gripper: Callable[[], float] | None = None,
+    ) -> list[tuple[float, float]]:
+        """Poll ``button`` every ``dt`` s of the robot's clock until it is pressed; the
+        gripper polls ``(joint stamp, state)`` on the way."""
+        start = self._clock.time
+        polls: list[tuple[float, float]] = []
+        while True:
+            self.joint_positions()  # the first message waited for, the watchdog checked
+            polls.append((float(self.joints.msg[0]), 0.0 if gripper is None else gripper()))
+            if button():
+                return polls
+            if self._clock.time - start > max_seconds:
+                raise MMPAError(f"arm: the demonstration did not {what} within {max_seconds:g} s")
+            self._clock.step(dt)
 
     # ------------------------------------------------------------------ streaming
     def command(self, q: Array) -> None:

@@ -52,8 +52,8 @@ class Ros2DeviceConfig(BaseModel):
 
 class Topic:
     """What one subscription received: the latest message, the last ``keep`` ones, how many
-    and when the latest arrived (monotonic s). Thread-safe; :meth:`wait` blocks until a
-    predicate over it holds."""
+    and when the latest arrived (monotonic s); every one while tapped (:meth:`tap`).
+    Thread-safe; :meth:`wait` blocks until a predicate over it holds."""
 
     def __init__(self, device: str, topic: str, keep: int = 1) -> None:
         self.device, self.topic = device, topic
@@ -64,6 +64,7 @@ class Topic:
         self.history: deque[tuple[int, Any]] = deque(maxlen=max(1, keep))
         self.refused = 0  # messages the device's conversion refused
         self.last_refusal = ""
+        self._taps: list[list[Any]] = []
 
     def put(self, msg: Any) -> None:
         with self._cond:
@@ -71,7 +72,21 @@ class Topic:
             self.count += 1
             self.arrived = time.monotonic()
             self.history.append((self.count, msg))
+            for kept in self._taps:
+                kept.append(msg)
             self._cond.notify_all()
+
+    def tap(self) -> list[Any]:
+        """Keep every message from now on (not only the last ``keep``) until
+        :meth:`untap`: the list they are appended to, in arrival order."""
+        kept: list[Any] = []
+        with self._cond:
+            self._taps.append(kept)
+        return kept
+
+    def untap(self, kept: list[Any]) -> None:
+        with self._cond:
+            self._taps = [k for k in self._taps if k is not kept]
 
     def wait(self, done: Callable[[], bool], timeout: float) -> bool:
         """Block until ``done()`` (called under the lock) or ``timeout`` wall s; its value."""
