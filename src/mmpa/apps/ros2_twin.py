@@ -117,6 +117,11 @@ class TwinStats:
         return self.sim_s / self.wall_s if self.wall_s > 0 else 0.0
 
 
+def _tf(stamp: float, transforms: list[tuple[str, str, Any]]) -> Any:
+    """``tf2_msgs/TFMessage`` (rosbags) of ``(parent, child, pose)`` triples at ``stamp``."""
+    return rm.tf_message([rm.transform_stamped(stamp, p, c, Tm) for p, c, Tm in transforms])
+
+
 class TwinNode:
     """The twin on ROS 2 (module docstring). ``args``: ROS arguments (``--ros-args ...``).
 
@@ -188,9 +193,11 @@ class TwinNode:
         }
 
     def _publish(self, kind: str, msg: Any) -> None:
-        """Publish ``msg`` (rclpy, or a rosbags message, bridged) on the ``kind`` topic."""
+        """Publish ``msg`` on the ``kind`` topic: an rclpy message as it is, a rosbags one as
+        its CDR bytes (raw publishing: no rclpy message is built, the image's pixels are
+        copied once, into the bytes)."""
         if not hasattr(msg, "get_fields_and_field_types"):
-            msg = messages.to_rclpy(msg)
+            msg = bytes(messages.typestore().serialize_cdr(msg, msg.__msgtype__))
         self._pubs[kind].publish(msg)
         self.stats.published[kind] = self.stats.published.get(kind, 0) + 1
 
@@ -216,7 +223,7 @@ class TwinNode:
             (F["flange"], F["tcp"], rob.gripper.T_flange_tcp),
             (F["flange"], F["camera"], rob.camera.T_flange_camera),
         ]
-        self._publish("tf_static", messages.tf_message(t, tfs))
+        self._publish("tf_static", _tf(t, tfs))
         radius = float(w.scene.reflectors.radius)
         truth = w.truth.reflector_positions()[:, :2]
         self._publish("truth_reflectors", rm.reflector_markers(t, truth, radius, "truth"))
@@ -238,7 +245,7 @@ class TwinNode:
         parents = [F["arm_base"], *ARM_FRAMES[:-1]]
         tfs = [(F["odom"], F["base"], odo.pose)]
         tfs += [(parents[i], ARM_FRAMES[i], A[i]) for i in range(6)]
-        self._publish("tf", messages.tf_message(t, tfs))
+        self._publish("tf", _tf(t, tfs))
         self._publish("truth_base", rm.pose_stamped(t, F["map"], w.truth.T_map_base_link()))
         self._publish("truth_tcp", rm.pose_stamped(t, F["map"], w.truth.T_map_tcp()))
         eps = 1e-9
