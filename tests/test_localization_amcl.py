@@ -351,7 +351,7 @@ def test_product_likelihood_field_finds_the_heading(world, grid) -> None:
     """The sharp (product-form, bilinear) field used with < 3 reflectors resolves heading to
     a few mrad at the truth; Nav2's sum-of-cubes field hardly tells 20 mrad apart."""
     world.reset("1")
-    amcl = AMCL(grid, laser_pose2d(world))
+    amcl = AMCL(grid, laser_pose2d(world), AMCLConfig.paper())  # Nav2's field below
     truth = world.truth.base_pose2d()
     scan = world.lidar.scan()
     dth = np.linspace(-0.06, 0.06, 121)  # 1 mrad steps
