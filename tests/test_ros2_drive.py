@@ -10,10 +10,10 @@ stamp, and ``map -> odom`` on ``/tf`` (stamped scan + ``transform_tolerance``) c
 the twin's ``odom -> base_link`` of that stamp must give the published pose back.
 
 - ``enhanced`` (the reflectors from the twin's ``/reflectors``, Nav2's default AMCL
-  parameters): within 10 mm (measured 2.5-3.3 mm, three runs; the library alone on the same
+  parameters): within 10 mm (measured 2.5-4.8 mm, four runs; the library alone on the same
   drive: 1.9 mm);
 - ``amcl`` on the occupancy map alone (no reflectors), the beam model at 360 beams, updates
-  every 5 cm / 0.05 rad: within 30 mm (measured 9.2 and 13.4 mm, heading 0.013 and 0.019 rad;
+  every 5 cm / 0.05 rad: within 30 mm (measured 9.2, 13.4, 9.5 mm, heading 0.013-0.028 rad;
   the library alone, particle seeds 0-3: 4-11 mm, its heading biased by 0.016 rad by the
   map's distortion).
 
