@@ -193,8 +193,8 @@ def _key_tip_error(task_db: Path, monitor: dict) -> float:
 
 @pytest.mark.slow
 def test_run_task_over_ros2_after_a_rough_parking(tmp_path: Path) -> None:
-    """``mmpa --robot ros2.yaml run needle_site1 --yes`` against the twin node parked
-    roughly at site 1 (the twin path's first parking offset of seed 0: 13.8 mm, -99.9 mm,
+    """``mmpa --robot ros2.yaml run needle_site1 --yes --no-drive`` against the twin node
+    parked roughly at site 1 (the twin path's first parking offset of seed 0: 13.8 mm, -99.9 mm,
     -3.13 deg): IPE with the camera over ROS 2, the adapted path over the trajectory topic.
     Measured: the estimate [13.7, -100.2, -0.1] mm, [-0.02, 0.00, -3.12] deg; the needle
     tip 0.197 mm from the taught one (the twin path, in-process: 0.361 mm); the twin node
@@ -224,7 +224,7 @@ def test_run_task_over_ros2_after_a_rough_parking(tmp_path: Path) -> None:
     try:
         args = ["--robot", str(robot_file(tmp_path, dom)), "run", "needle_site1"]
         run = subprocess.run(
-            [sys.executable, "-c", cmd, *args, "--db", str(db), "--yes"],
+            [sys.executable, "-c", cmd, *args, "--db", str(db), "--yes", "--no-drive"],
             capture_output=True, text=True, timeout=600, env=os.environ | {"COLUMNS": "200"},
         )  # fmt: skip
     finally:

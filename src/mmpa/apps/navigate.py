@@ -13,11 +13,13 @@ The truth is known only where the robot publishes it (the twin node's ``/truth/b
 from __future__ import annotations
 
 from contextlib import ExitStack
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from mmpa.apps.robots import RobotLocalizer, open_robot, robot_description
+from mmpa.apps.localization_settings import load_localization_config
+from mmpa.apps.robots import RobotLocalizer, open_robot
 from mmpa.backends.bag import BagWriter, Recorder
 from mmpa.backends.bag.record import ARM_RATE_HZ
 from mmpa.backends.twin.error_model import ErrorModelConfig
@@ -32,16 +34,26 @@ from mmpa.harness.twin_localization import twin_localizer
 from mmpa.localization.localizer import Localizer
 from mmpa.localization.settings import LocalizationConfig, build_localizer, initial_covariance
 from mmpa.maps.map_server import replace_reflectors, save_map
-from mmpa.missions.navigate import NavigateConfig, NavigationResult, navigate
+from mmpa.maps.occupancy import OccupancyGrid
+from mmpa.missions.navigate import (
+    NavigateConfig,
+    NavigationResult,
+    localize_standing,
+    navigate,
+)
 from mmpa.navigation.planner import CostMap
-from mmpa.robot.interfaces import require
+from mmpa.robot.interfaces import MobileManipulator, require
 from mmpa.robot.robot_file import robot_backend
 
 __all__ = [
+    "RobotOnMap",
+    "drive_robot",
     "export_twin_map",
     "health_summary",
+    "localize_robot",
     "navigate_robot",
     "navigate_twin",
+    "robot_on_map",
     "site_or_pose",
     "twin_errors",
 ]
@@ -167,17 +179,71 @@ def site_or_pose(text: str) -> Array:
         raise InvalidInputError(f"{e}; or give a pose x,y,theta (m, m, rad in map)") from None
 
 
-def _robot_localizer(
-    robot: object, grid: object, st: LocalizationConfig, start: str, seed: int, mount: Array
-) -> tuple[Localizer, str]:
-    """The robot's own localizer (``topics.pose``) when it has one, else mmpa's of
-    ``st.method`` started at ``start`` (the operator's rough pose); and its name."""
+@dataclass
+class RobotOnMap:
+    """A hardware robot on its map: the map it serves (reflectors from ``reflectors``:
+    ``/reflectors``, a reflector map file or ``none``), the localizer tracking it and its
+    name (``robot``: the robot's own running localizer)."""
+
+    grid: OccupancyGrid
+    reflectors: str
+    localizer: Localizer
+    method: str
+
+
+def robot_on_map(
+    robot: MobileManipulator,
+    robot_file: Path | None,
+    start: str | None,
+    settings: LocalizationConfig | None = None,
+    seed: int = 0,
+    reflector_map: Path | None = None,
+) -> RobotOnMap:
+    """The map ``robot`` serves (its reflectors replaced by ``reflector_map``'s when given)
+    and a localizer on it: the robot's own (``backend.ros2.topics.pose``) when it runs one,
+    else mmpa's of ``settings`` (default: the robot file's localization section; particles
+    from ``seed``) started at ``start`` (a site or ``x,y,theta``: where it stands, roughly;
+    a :class:`ConfigError` when None)."""
+    st = settings or load_localization_config(LocalizationConfig, robot_file)
+    served = getattr(robot, "occupancy_grid", None)
+    if served is None:
+        raise ConfigError("this robot serves no map: localizing it needs one (/map)")
+    grid, refl_src = served()
+    if reflector_map is not None:
+        grid, refl_src = replace_reflectors(grid, reflector_map), str(reflector_map)
     source = getattr(robot, "pose", None)
     if source is not None:
-        return RobotLocalizer(source), "robot"
-    loc = build_localizer(st, grid, mount, np.random.default_rng(seed))  # type: ignore[arg-type]
+        require(robot, "odometry", mission="reading the robot's localizer")
+        return RobotOnMap(grid, refl_src, RobotLocalizer(source), "robot")
+    require(robot, "odometry", "lidar", mission="localization")
+    if start is None:
+        raise ConfigError(
+            "localizing this robot needs where it stands, roughly: --from SITE or x,y,theta "
+            "(m, m, rad in map), or a running localizer (backend.ros2.topics.pose)"
+        )
+    mount = T_to_se2(robot.description.lidar.T_base_link_laser)
+    loc = build_localizer(st, grid, mount, np.random.default_rng(seed))
     loc.initialize(site_or_pose(start), initial_covariance(st))
-    return loc, st.method
+    return RobotOnMap(grid, refl_src, loc, st.method)
+
+
+def localize_robot(robot: MobileManipulator, on: RobotOnMap, scans: int = 5) -> Array:
+    """Where ``robot`` stands: ``on``'s localizer after ``scans`` scans standing still
+    (:func:`~mmpa.missions.navigate.localize_standing`), ``[x, y, theta]`` in ``map``."""
+    return localize_standing(robot, on.localizer, scans)  # type: ignore[arg-type]
+
+
+def drive_robot(
+    robot: MobileManipulator, on: RobotOnMap, goal: Array, timeout: float = 120.0
+) -> tuple[NavigationResult, bool]:
+    """Drive ``robot``'s base to ``goal`` ``[x, y, theta]`` on ``on``'s estimate (the
+    navigate mission); the result and whether the robot published its truth (the twin
+    node's ``/truth/base_pose``: the parking error judged by it)."""
+    require(robot, "base", "odometry", mission="navigate")
+    truth_of = getattr(robot, "truth", None)
+    truth = truth_of() if truth_of is not None else None
+    cfg = NavigateConfig(timeout=timeout)
+    return navigate(robot, on.localizer, on.grid, goal, cfg, truth=truth), truth is not None
 
 
 def navigate_robot(
@@ -196,22 +262,14 @@ def navigate_robot(
     s of the robot's clock. Returns the summary (truth-based errors None without a truth)."""
     st = settings or LocalizationConfig()
     goal = site_or_pose(to)
-    mount = T_to_se2(robot_description(robot_file).lidar.T_base_link_laser)
     devices = ("clock", "odometry", "base", "lidar")
     with open_robot(robot_file, devices) as robot:
         require(robot, "base", "odometry", "lidar", mission="navigate")
-        served = getattr(robot, "occupancy_grid", None)
-        if served is None:
-            raise ConfigError("this robot serves no map: navigate needs one (/map)")
-        grid, refl_src = served()
-        if reflector_map is not None:
-            grid, refl_src = replace_reflectors(grid, reflector_map), str(reflector_map)
-        loc, method = _robot_localizer(robot, grid, st, start, seed, mount)
-        truth = robot.truth()  # type: ignore[attr-defined]
-        res = navigate(robot, loc, grid, goal, NavigateConfig(timeout=timeout), truth=truth)
-    summary = _summary(res, start, to, method, robot_backend(robot_file).kind)
-    summary["reflectors"] = refl_src
-    summary["truth"] = "/truth/base_pose" if truth is not None else "none"
+        on = robot_on_map(robot, robot_file, start, st, seed, reflector_map)
+        res, has_truth = drive_robot(robot, on, goal, timeout)
+    summary = _summary(res, start, to, on.method, robot_backend(robot_file).kind)
+    summary["reflectors"] = on.reflectors
+    summary["truth"] = "/truth/base_pose" if has_truth else "none"
     return summary
 
 

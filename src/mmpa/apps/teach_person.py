@@ -34,10 +34,11 @@ from typing import TextIO
 
 import numpy as np
 
+from mmpa.apps.navigate import localize_robot, robot_on_map
 from mmpa.backends.bag.reader import BagJointStates
 from mmpa.backends.ur import DigitalInputButton, URArm
 from mmpa.core.errors import ConfigError, InvalidInputError
-from mmpa.core.geometry import Array
+from mmpa.core.geometry import Array, se2_to_T
 from mmpa.missions.teach_repeat import (
     Button,
     Recorder,
@@ -223,11 +224,23 @@ def teach_on_hardware(
     db: str | Path | None = None,
     overwrite: bool = False,
     say: Callable[[str], None] = print,
+    robot_file: Path | None = None,
+    start: str | None = None,
+    seed: int = 0,
 ) -> dict:
     """``mmpa --robot R teach SITE TASK`` on a hardware backend (``kind``): the
     demonstration from ``from_bag`` or from the person (``button``: ``key`` or ``di:N``,
     :func:`make_button`), the view at ``sample_q`` (None: where the arm stands), stored as
-    task ``name``; ``say`` tells the person what to do. Returns the summary."""
+    task ``name``; ``say`` tells the person what to do. A robot with a base: the park pose
+    is the localizer's estimate where it stands (:func:`mmpa.apps.navigate.robot_on_map`:
+    its own localizer, or mmpa's of ``robot_file`` started at ``start``, particles from
+    ``seed``). Returns the summary."""
+    park, where = None, {}
+    if robot.base is not None:
+        on = robot_on_map(robot, robot_file, start, seed=seed)
+        est = localize_robot(robot, on)
+        park = se2_to_T(*est)
+        where = {"localizer": on.method, "park_pose": [round(float(v), 4) for v in est]}
     if from_bag is not None:
         record = bag_recorder(from_bag)
     else:
@@ -236,12 +249,12 @@ def teach_on_hardware(
         ), button, say)  # fmt: skip
     _, summary = teach_on_robot(
         robot, site, name,
-        record=record,
+        record=record, T_map_base_park=park,
         q_sample=sample_q, db=db, overwrite=overwrite, robot_id=kind,
         description=f"taught by a person on the {kind} backend"
         + (f" from {Path(from_bag).name}" if from_bag is not None else ""),
     )  # fmt: skip
-    return {"backend": kind, **summary}
+    return {"backend": kind, **where, **summary}
 
 
 def _announced(record: Recorder, button: str, say: Callable[[str], None]) -> Recorder:

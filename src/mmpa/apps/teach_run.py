@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
+from mmpa.apps.navigate import drive_robot, localize_robot, robot_on_map
 from mmpa.apps.path_report import check_adapted_path, write_dry_run
 from mmpa.backends.bag.record import ARM_RATE_HZ
 from mmpa.core.errors import MMPAError
-from mmpa.core.geometry import Array, T_to_vec6
+from mmpa.core.geometry import Array, T_to_se2, T_to_vec6, se2_to_T
 from mmpa.harness.ipe_eval import ipe_rows, offset_row
 from mmpa.harness.twin_site import MMPAExperimentConfig, TwinSite
 from mmpa.missions.teach_repeat import (
@@ -213,15 +214,77 @@ def run_stored_task_on_robot(
     confirm: Callable[[str], bool] | None = None,
     dry_run: Path | None = None,
     progress: Progress | None = None,
+    robot_file: Path | None = None,
+    start: str | None = None,
+    drive: bool = True,
+    seed: int = 0,
+    timeout: float = 120.0,
 ) -> dict:
     """``mmpa --robot R run TASK`` on a hardware backend: load task ``name`` from the store
-    and :func:`run_task_on_robot` where the robot stands (a robot with a base: drive it to
-    the task's park pose first, e.g. ``mmpa navigate``; a fixed base: where it is)."""
+    and :func:`run_task_on_robot`. A robot with a base is localized first (its own
+    localizer, or mmpa's of the robot file started at ``start``: where it stands, roughly;
+    particles from ``seed``) and, with ``drive``, driven to the task's park pose (asked
+    first with ``confirm``; at most ``timeout`` s of its clock); the estimate where it
+    stands is IPE's first guess. ``drive`` False: from where it stands (localized when
+    ``start`` is given or the robot runs its own localizer, else IPE without a first
+    guess). A fixed base: where it is. Nothing moves after a drive that did not arrive."""
     with TaskStore(db) as store:
         task = store.load(name)
-    out = {"backend": kind}
-    out.update(run_task_on_robot(robot, task, confirm=confirm, dry_run=dry_run, progress=progress))
+    out: dict = {"backend": kind}
+    T_now = None
+    localize = drive or start is not None or getattr(robot, "pose", None) is not None
+    if robot.base is not None and localize:
+        T_now = _park_on_robot(robot, task, robot_file, start, drive, confirm, seed, timeout, out)
+        if T_now is None:
+            return {**out, "task": task.name, "executed": False}
+    out.update(
+        run_task_on_robot(
+            robot, task, confirm=confirm, dry_run=dry_run, progress=progress, T_map_base_now=T_now
+        )
+    )
     return out
+
+
+def _park_on_robot(
+    robot: MobileManipulator,
+    task: Task,
+    robot_file: Path | None,
+    start: str | None,
+    drive: bool,
+    confirm: Callable[[str], bool] | None,
+    seed: int,
+    timeout: float,
+    out: dict,
+) -> Array | None:
+    """Localize a robot with a base and, with ``drive``, drive it to ``task``'s park pose
+    (:func:`mmpa.apps.navigate.drive_robot`); the estimate where it then stands (4x4), or
+    None with ``out["reason"]`` (not confirmed, not arrived)."""
+    on = robot_on_map(robot, robot_file, start, seed=seed)
+    out["localizer"] = on.method
+    goal = T_to_se2(task.T_map_base_park)
+    out["park_goal"] = _pose2(goal)
+    if drive:
+        here = localize_robot(robot, on)
+        question = f"drive the base from {_pose2(here)} to task {task.name}'s park pose?"
+        if confirm is not None and not confirm(question):
+            out["reason"] = "not confirmed: the base did not move"
+            return None
+        res, has_truth = drive_robot(robot, on, goal, timeout)
+        out["drive_reached"] = res.reached
+        out["drive_seconds"] = round(res.sim_time, 2)
+        if has_truth:
+            out["drive_parking_error_xy_mm"] = round(1e3 * float(res.parking_error_xy), 2)
+            out["drive_parking_error_yaw_deg"] = round(float(np.rad2deg(res.parking_error_yaw)), 3)
+        if not res.reached:
+            out["reason"] = f"the base did not reach the park pose: {res.reason}"
+            return None
+    est = localize_robot(robot, on)
+    out["park_estimate"] = _pose2(est)
+    return se2_to_T(*est)
+
+
+def _pose2(p: Array) -> str:
+    return f"[{p[0]:.3f} m, {p[1]:.3f} m, {np.rad2deg(p[2]):.2f} deg]"
 
 
 def _ipe_summary(res: AutomationResult, out: dict) -> None:

@@ -178,6 +178,23 @@ ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="YAML con
 SetOpt = Annotated[list[str] | None, typer.Option("--set", help="Override: key=value (repeat).")]
 
 
+SeedOpt = Annotated[
+    int,
+    typer.Option(help="Twin: robot instance / noise seed; hardware: the localizer's seed.", min=0),
+]
+FromOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--from",
+        help="Hardware, a base: where it stands, roughly (a site or x,y,theta in map) for "
+        "mmpa's localizer; not needed with the robot's own (backend.ros2.topics.pose).",
+    ),
+]
+#: the devices teach and run wait for on a hardware robot (absent ones are skipped)
+TEACH_DEVICES = ("clock", "arm", "camera", "odometry", "lidar")
+RUN_DEVICES = ("clock", "arm", "camera", "gripper", "odometry", "base", "lidar")
+
+
 def _mmpa_config(config: Path | None, seed: int, set_: list[str] | None, profile: str | None):
     from mmpa.core.config import load_config
     from mmpa.harness.twin_site import MMPAExperimentConfig
@@ -203,7 +220,7 @@ def teach(
     site: Annotated[str, typer.Argument(help="Site where the task is taught (1 or 2).")],
     task: Annotated[str, typer.Argument(help="Task name (twin: its demonstration).")],
     db: DbOpt = None,
-    seed: Annotated[int, typer.Option(help="Twin: robot instance / noise seed.", min=0)] = 0,
+    seed: SeedOpt = 0,
     overwrite: Annotated[bool, typer.Option(help="Replace a stored task of that name.")] = False,
     from_bag: Annotated[
         Path | None, typer.Option(help="Hardware: the demonstration's /joint_states from a bag.")
@@ -219,6 +236,7 @@ def teach(
     max_seconds: Annotated[
         float, typer.Option(help="Hardware: longest demonstration (s).", min=1.0)
     ] = 600.0,
+    start: FromOpt = None,
     profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
@@ -227,18 +245,20 @@ def teach(
     its scripted operator plays the demonstration TASK. `mmpa --robot R` on a ros2 / direct
     robot: a person guides the arm (UR freedrive, or the pendant while /joint_states is
     read), started and stopped by --button; or --from-bag replays a recorded one. The park
-    pose is the identity on a fixed base."""
+    pose: the localizer's estimate where a robot with a base stands (its own localizer, or
+    mmpa's started at --from); the identity on a fixed base."""
     from mmpa.apps.teach_person import teach_on_hardware
     from mmpa.apps.teach_run import teach_task
 
     path, backend = backend_in_use()
     try:
         if backend.hardware:
-            with open_hardware(path, ("clock", "arm", "camera")) as robot:
+            with open_hardware(path, TEACH_DEVICES) as robot:
                 summary = teach_on_hardware(
                     robot, site, task, kind=backend.kind, from_bag=from_bag,
                     sample_q=_joints(sample_q), rate_hz=rate, button=button,
                     max_seconds=max_seconds, db=db, overwrite=overwrite, say=console.print,
+                    robot_file=path, start=start, seed=seed,
                 )  # fmt: skip
         else:
             if from_bag is not None:
@@ -258,7 +278,7 @@ def run_cmd(
         typer.Option(help="Twin: automation site (default: the task's; 2' for the bump)."),
     ] = None,
     db: DbOpt = None,
-    seed: Annotated[int, typer.Option(help="Twin: robot instance / noise seed.", min=0)] = 0,
+    seed: SeedOpt = 0,
     trial: Annotated[int, typer.Option(help="Twin: which parking draw of this seed.", min=0)] = 0,
     tmma: Annotated[bool, typer.Option(help="Twin: also replay the taught joints.")] = False,
     yes: YesOpt = False,
@@ -266,6 +286,14 @@ def run_cmd(
         Path | None,
         typer.Option(help="Hardware: stop before the path; write it and a picture here."),
     ] = None,
+    start: FromOpt = None,
+    drive: Annotated[
+        bool,
+        typer.Option(help="Hardware, a base: drive to the task's park pose first (or not)."),
+    ] = True,
+    timeout: Annotated[
+        float, typer.Option(help="Hardware, a base: longest drive (s of its clock).", min=1.0)
+    ] = 120.0,
     profile: ProfileOpt = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
@@ -276,18 +304,21 @@ def run_cmd(
 ) -> None:
     """Automation stage (paper 000 §3.2): IPE, the adapted path, execute. The twin
     (default): park with a paper offset, errors against the truth. `mmpa --robot R` on a
-    ros2 / direct robot: from where it stands, the estimate, the path's clearance from the
-    taught one and the limits check are shown and asked about before the arm moves (--yes
-    skips; --dry-run DIR stops there and writes the path and a picture)."""
+    ros2 / direct robot: a base is localized (its own localizer, or mmpa's from --from)
+    and driven to the task's park pose (--no-drive: from where it stands); then the
+    estimate, the path's clearance from the taught one and the limits check are shown and
+    asked about before the arm moves (--yes skips; --dry-run DIR stops there and writes the
+    path and a picture)."""
     from mmpa.apps.teach_run import run_stored_task_on_robot, run_task
 
     path, backend = backend_in_use()
     try:
         if backend.hardware:
-            with open_hardware(path, ("clock", "arm", "camera", "gripper")) as robot:
+            with open_hardware(path, RUN_DEVICES) as robot:
                 summary = run_stored_task_on_robot(
                     robot, task, db=db, kind=backend.kind,
                     confirm=confirmer(yes, backend), dry_run=dry_run,
+                    robot_file=path, start=start, drive=drive, seed=seed, timeout=timeout,
                 )  # fmt: skip
         else:
             with console.status(f"running {task}"):
