@@ -5,6 +5,9 @@ tried."""
 
 from __future__ import annotations
 
+import threading
+import time
+
 import numpy as np
 import pytest
 
@@ -75,11 +78,6 @@ def test_connection_failures_name_the_device(tmp_path) -> None:
     ):
         pass  # here: no ur-rtde; with it: no controller at that (test-net) address
     with (
-        pytest.raises(ConfigError, match="base: ros2"),
-        direct.open_direct(_cfg(base="ros2"), ROBOT),
-    ):
-        pass
-    with (
         pytest.raises(ConfigError, match="kind direct"),
         direct.open_direct(BackendConfig(), ROBOT),
     ):
@@ -99,3 +97,58 @@ def test_open_robot_opens_the_direct_kind(tmp_path, monkeypatch) -> None:
     with robots.open_robot(path) as robot:
         assert isinstance(robot.arm, URArm) and robot.camera is None
         np.testing.assert_allclose(robot.arm.joint_positions(), HOME)
+
+
+def test_a_base_over_ros2_beside_the_rtde_arm(monkeypatch) -> None:
+    """``direct.base: ros2``: the base (``/cmd_vel``) and odometry (``/odom``) over real DDS
+    from a peer playing the base's driver, the arm over RTDE (the fake) in the same robot;
+    the ROS 2 arm, camera and gripper topics are not read (no ``/joint_states`` needed)."""
+    pytest.importorskip("rclpy", reason="the ros2 extra is not installed")
+    import os
+    import zlib
+
+    from mmpa.backends.bag import messages as bag
+    from mmpa.backends.ros2 import graph, messages
+    from mmpa.backends.ros2.devices.robot import Ros2Robot
+    from mmpa.robot.backend_config import Ros2Backend
+    from mmpa.robot.interfaces import Odometry
+
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    dom = 215 + zlib.crc32(f"direct-base:{os.getpid()}".encode()) % 18
+    fake = FakeRTDE(HOME)
+    monkeypatch.setattr(direct, "connect_rtde", lambda host, f: (fake, fake))
+    ros2 = Ros2Backend(domain_id=dom, connect_timeout_s=20.0, topics={"scan": "", "pose": ""})
+    cfg = _cfg(ur_host="10.0.0.7", camera=False, base="ros2").model_copy(update={"ros2": ros2})
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(dom))
+    peer = graph.Session("mmpa_test_direct_base")
+    mc = messages.message_class
+    twists: list = []
+    peer.node.create_subscription(mc("geometry_msgs/msg/Twist"), "/cmd_vel", twists.append, 10)
+    odom = peer.node.create_publisher(mc("nav_msgs/msg/Odometry"), "/odom", 10)
+    o = Odometry(np.array([1.0, 2.0, 0.3]), np.zeros(2), 5.0)
+    done = threading.Event()
+
+    def drive() -> None:
+        while not done.is_set():
+            odom.publish(messages.to_rclpy(bag.odometry(o)))
+            peer.spin_once(0.05)
+
+    thread = threading.Thread(target=drive, daemon=True)
+    thread.start()
+    try:
+        with direct.open_direct(cfg, ROBOT) as robot:
+            assert isinstance(robot, Ros2Robot) and isinstance(robot.arm, URArm)
+            assert robot.camera is None and robot.gripper is None and robot.lidar is None
+            np.testing.assert_allclose(robot.odometry.odometry().pose, o.pose)
+            np.testing.assert_allclose(robot.arm.joint_positions(), HOME)
+            robot.base.set_velocity(0.1, -0.2)
+            deadline = time.monotonic() + 10.0
+            while not any(t.linear.x == 0.1 for t in twists) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            sent = next(t for t in twists if t.linear.x == 0.1)
+            assert sent.angular.z == -0.2
+        assert fake.calls[-1][1] == "disconnect"
+    finally:
+        done.set()
+        thread.join(5)
+        peer.close()

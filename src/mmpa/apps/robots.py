@@ -53,7 +53,7 @@ def open_robot(
             "with backend.kind: twin); open_robot opens the hardware kinds ros2 and direct"
         )
     if backend.kind == "direct":  # the UR arm over RTDE, the RealSense over its SDK
-        with open_direct(backend, robot_description(robot_file)) as robot:
+        with open_direct(backend, robot_description(robot_file), devices) as robot:
             yield robot
         return
     from mmpa.backends.ros2.devices.robot import ros2_robot

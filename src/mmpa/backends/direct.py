@@ -11,9 +11,13 @@
   (None: the first device found) or ``realsense_playback`` (a recording played by the SDK);
   None with ``camera: false``;
 - ``base``: none (``base: none``, a fixed-base arm: missions take the park pose as the
-  identity); ``base: ros2`` needs the ROS 2 base of :mod:`mmpa.backends.ros2` (refused with
-  a :class:`~mmpa.core.errors.ConfigError` until it is there);
-- no gripper, lidar or odometry; the clock is the wall clock (:class:`WallClock`).
+  identity; no lidar or odometry either); ``base: ros2``: the base, odometry, lidar, map
+  and a running localizer over ROS 2, as the ``ros2`` section names them
+  (:mod:`mmpa.backends.ros2.devices`, the extra ``ros2``): the robot is then a
+  :class:`~mmpa.backends.ros2.devices.robot.Ros2Robot` holding the RTDE arm and the
+  RealSense camera;
+- no gripper; the clock is the wall clock (:class:`WallClock`; ``ros2.use_sim_time`` with
+  ``base: ros2``: the base's ``/clock``).
 
 A device that cannot be reached is a :class:`~mmpa.core.errors.MMPAError` naming the device
 and what was tried (the host and rate, the serial or the recording). Every device is closed
@@ -22,7 +26,7 @@ when the block ends (the arm's stream stopped, the camera's pipeline stopped).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import ExitStack, contextmanager
 from typing import Any
 
@@ -34,7 +38,7 @@ from mmpa.robot.description import RobotDescription
 from mmpa.robot.interfaces import RobotDevices, WallClock
 from mmpa.robot.limits import JointLimits
 
-__all__ = ["connect_rtde", "open_direct"]
+__all__ = ["BASE_DEVICES", "connect_rtde", "open_direct"]
 
 
 def connect_rtde(host: str, frequency: float) -> tuple[Any, Any]:
@@ -95,20 +99,60 @@ def _open_camera(cfg: BackendConfig, stack: ExitStack) -> RealSenseCamera:
     return cam
 
 
+#: the devices of a ``base: ros2`` direct robot that come over ROS 2
+BASE_DEVICES = ("clock", "odometry", "base", "lidar")
+
+
 @contextmanager
-def open_direct(cfg: BackendConfig, description: RobotDescription) -> Iterator[RobotDevices]:
-    """The direct backend's devices (module docstring) as one robot, closed on exit."""
+def open_direct(
+    cfg: BackendConfig, description: RobotDescription, devices: Iterable[str] | None = None
+) -> Iterator[RobotDevices]:
+    """The direct backend's devices (module docstring) as one robot, closed on exit.
+    ``devices``: with ``base: ros2``, the ROS 2 devices waited for (names of
+    :data:`BASE_DEVICES`; None: all of them that the topics name)."""
     if cfg.kind != "direct":
         raise ConfigError(
             f"open_direct needs a robot file with backend kind direct, not {cfg.kind}"
         )
-    if cfg.direct.base == "ros2":
-        raise ConfigError(
-            "direct.base: ros2 (a mobile base over ROS 2 beside the RTDE arm) is not "
-            "available yet; use base: none for a fixed-base arm, or kind: ros2 for a robot "
-            "whose drivers all speak ROS 2"
-        )
     with ExitStack() as stack:
         arm = None if cfg.direct.ur_host is None else _open_arm(cfg, description, stack)
         camera = _open_camera(cfg, stack) if cfg.direct.camera else None
-        yield RobotDevices(description, arm=arm, camera=camera, clock=WallClock())
+        if cfg.direct.base == "none":
+            yield RobotDevices(description, arm=arm, camera=camera, clock=WallClock())
+            return
+        yield _ros2_base(cfg, description, stack, arm, camera, devices)
+
+
+def _ros2_base(
+    cfg: BackendConfig,
+    description: RobotDescription,
+    stack: ExitStack,
+    arm: URArm | None,
+    camera: RealSenseCamera | None,
+    devices: Iterable[str] | None,
+) -> RobotDevices:
+    """``base: ros2``: a :class:`~mmpa.backends.ros2.devices.robot.Ros2Robot` of the ``ros2``
+    section's base, odometry, lidar, map, clock and running localizer (its arm, camera and
+    gripper topics not read), holding the RTDE arm and the RealSense camera."""
+    from mmpa.backends.ros2.devices.robot import ros2_robot  # the ros2 extra
+
+    off = {k: "" for k in _NOT_BASE}
+    topics = cfg.ros2.topics.model_copy(update=off)
+    base_cfg = cfg.model_copy(update={"ros2": cfg.ros2.model_copy(update={"topics": topics})})
+    robot = stack.enter_context(ros2_robot(base_cfg, description, name="mmpa_direct_base"))
+    wanted = BASE_DEVICES if devices is None else [d for d in devices if d in BASE_DEVICES]
+    robot.connect(wanted)
+    robot.arm, robot.camera = arm, camera
+    return robot
+
+
+#: the ``ros2`` topics a direct robot takes over RTDE and the RealSense SDK instead
+_NOT_BASE = (
+    "joint_states",
+    "arm_trajectory",
+    "arm_stream",
+    "gripper",
+    "color",
+    "depth",
+    "camera_info",
+)
