@@ -17,6 +17,7 @@ from PIL import Image
 from scipy.spatial import cKDTree
 
 from mmpa.core.geometry import apply, inv, make_T
+from mmpa.ipe.config import IPEConfig
 from mmpa.registration import RegistrationConfig, register
 from mmpa.registration.ambiguity import (
     explained,
@@ -161,3 +162,12 @@ def test_desk_pair_that_passed_wrong() -> None:
         else:
             assert r.ok, (a, b, r.reason)
             assert _err_mm(r.T, truth, ca.points) < 8.0
+
+
+def test_defaults_per_caller() -> None:
+    """On for ``register`` without ``init`` (``mmpa register``, loop closures); off for the
+    paper's registration and for IPE, which registers every later view from its estimate
+    (the check would take ~0.35 s of its 0.5 s compute target: docs/registration.md)."""
+    assert CFG.ambiguity_check == "global"
+    assert RegistrationConfig.paper().ambiguity_check == "off"
+    assert IPEConfig().registration.ambiguity_check == "off"

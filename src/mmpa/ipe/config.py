@@ -62,7 +62,10 @@ class IPEConfig(BaseModel):
     prior_max_rotation: float = Field(np.deg2rad(12.0), gt=0)  # rad
     max_translation: float = Field(1.0, gt=0)  # m: larger |dT_B| is implausible -> False
     max_rotation: float = Field(np.deg2rad(60.0), gt=0)  # rad
-    registration: RegistrationConfig = RegistrationConfig()
+    # the competing-pose check (mmpa.registration.ambiguity) off: IPE registers every view
+    # after the first from the previous estimate, so a wrong global first view only aims the
+    # next one; the check costs ~0.35 s of the 0.5 s IPE compute target (docs/registration.md)
+    registration: RegistrationConfig = RegistrationConfig(ambiguity_check="off")
     # beyond the paper: once converged, a projective point-to-plane refinement of the last
     # view at full resolution on its depth image (no voxel aliasing; estimates the relative
     # depth scale too), starting from the converged dT_C; None: off

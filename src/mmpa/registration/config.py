@@ -180,9 +180,10 @@ class RegistrationConfig(_Frozen):
     @classmethod
     def paper(cls, **changes: object) -> RegistrationConfig:
         """The paper's own registration (paper 000 §3.2.2 II): colored ICP whenever both
-        clouds carry colour (``color_mode="paper"``), else point-to-plane; ``changes`` on top.
+        clouds carry colour (``color_mode="paper"``), else point-to-plane, without the
+        competing-pose check (beyond the paper); ``changes`` on top.
         (FGR every iteration is the IPE loop's choice: :meth:`mmpa.ipe.IPEConfig.paper`.)"""
-        return cls.model_validate({"color_mode": "paper", **changes})
+        return cls.model_validate({"color_mode": "paper", "ambiguity_check": "off", **changes})
 
     @property
     def fine_voxel(self) -> float:
