@@ -241,8 +241,8 @@ def teach_on_hardware(
         est = localize_robot(robot, on)
         park = se2_to_T(*est)
         where = {"localizer": on.method, "park_pose": [round(float(v), 4) for v in est]}
-    if from_bag is not None:
-        record = bag_recorder(from_bag)
+    if from_bag is not None:  # the arm's joints by its names (a ROS 2 arm's, else UR's)
+        record = bag_recorder(from_bag, tuple(getattr(robot.arm, "names", UR_JOINT_NAMES)))
     else:
         record = _announced(person_recorder(
             robot, rate_hz, make_button(button, robot), max_seconds=max_seconds
