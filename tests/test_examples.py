@@ -80,3 +80,38 @@ def test_teach_and_repeat_on_your_robot_against_the_fakes() -> None:
     assert "'path_waypoints': 101" in res.stdout
     assert "'executed': True" in res.stdout and "'ipe_iterations': 1" in res.stdout
     assert "adapted vs taught tool path: 0.0 mm at most" in res.stdout
+
+
+@pytest.mark.slow
+def test_teach_and_repeat_in_the_twin() -> None:
+    """The twin's teach-and-repeat example: the needle task taught at site 1 and run after
+    a rough parking, the needle within 1 mm (the same path as ``mmpa teach`` / ``mmpa run``,
+    whose CLI tests run by default; this one costs 12 s)."""
+    res = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / "teach_and_repeat_in_the_twin.py")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "'executed': True" in res.stdout and "'cloud_points'" in res.stdout
+
+
+@pytest.mark.slow
+def test_teach_and_repeat_over_ros2_against_the_twin_node() -> None:
+    """The ros2 example with --fake: the twin node over real DDS, the demonstration from a
+    bag of /joint_states, the view at the needle's sampling joints; the run localizes,
+    drives to the park pose, IPE, the adapted path (--yes). Slow: 41 s of real time on
+    2 cores (the twin node renders its camera in real time); the default suite covers its
+    parts (tests/test_ros2_teach.py, test_run_hardware.py's drive, test_ros2_devices.py)."""
+    pytest.importorskip("rclpy", reason="the ros2 extra is not installed")
+    res = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / "teach_and_repeat_over_ros2.py"),
+         "--fake", "--yes"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "'path_waypoints': 101" in res.stdout and "'executed': True" in res.stdout
+    assert "'drive_reached': True" in res.stdout
