@@ -2,8 +2,10 @@
 
 ``mmpa --robot R teach SITE TASK`` on a hardware backend records what the operator does:
 
-- the park pose ``L_i``: the localizer's estimate (given by the caller) or, for a fixed base
-  (a robot without a base), the identity: ``map`` is the arm's mounting;
+- the park pose ``L_i``: the localizer's estimate where the robot stands (a robot with a
+  base: :func:`mmpa.apps.navigate.robot_on_map`, its own localizer or mmpa's from a rough
+  pose) or, for a fixed base (a robot without a base), the identity: ``map`` is the arm's
+  mounting;
 - the wrist RGB-D view at the sampling pose (``q_sample``; None: where the arm stands);
 - the tool path while the person guides the arm, from one of the sources below, through
   the NOMINAL kinematics of the robot file.
