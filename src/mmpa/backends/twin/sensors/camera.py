@@ -1,6 +1,7 @@
-"""The simulated wrist RGB-D camera (D435-like): renders the model's ``wrist_camera`` and
-adds the error model's depth and colour noise (:mod:`mmpa.backends.twin.noise`), with the
-session's disparity drift and colour gain. Units: m, rad, s; depth in m, colour uint8.
+"""The simulated wrist RGB-D camera (D435-like): renders the model's ``wrist_camera``
+(:class:`~mmpa.backends.twin.sensors.render.CameraRenderer`) and adds the error model's depth
+and colour noise (:mod:`mmpa.backends.twin.noise`), with the session's disparity drift and
+colour gain. Units: m, rad, s; depth in m, colour uint8.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import numpy as np
 from mmpa.backends.twin.error_model import CameraNoise
 from mmpa.backends.twin.noise import color_noise, depth_noise, resample_to
 from mmpa.backends.twin.sensors.common import CAMERA_NAME, T_world_camera_optical, lookup_id
+from mmpa.backends.twin.sensors.render import CameraRenderer
 from mmpa.core.errors import SimulationError
 from mmpa.core.geometry import Array
 from mmpa.robot.description import CameraDescription, CameraIntrinsics
@@ -25,10 +27,11 @@ __all__ = ["SimCamera"]
 class SimCamera:
     """Wrist RGB-D camera (D435-like): renders ``wrist_camera``, adds the depth/color noise.
 
-    Owns a ``mujoco.Renderer`` at the color resolution: call :meth:`close` when done (or use
-    it as a context manager). Depth is aligned to color (same intrinsics ``desc.color``).
-    :meth:`set_resolution` switches to another stream profile of the same camera (e.g.
-    320x240 for the tracking servo loop: a quarter of the pixels to render and corrupt).
+    Owns a :class:`~mmpa.backends.twin.sensors.render.CameraRenderer` at the color
+    resolution: call :meth:`close` when done (or use it as a context manager). Depth is
+    aligned to color (same intrinsics ``desc.color``). :meth:`set_resolution` switches to
+    another stream profile of the same camera (e.g. 320x240 for the tracking servo loop: a
+    quarter of the pixels to render and corrupt).
     """
 
     def __init__(
@@ -48,7 +51,7 @@ class SimCamera:
         self._cam_id = lookup_id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera, "camera", model.ncam)
         extent = float(model.stat.extent)
         self._far = float(model.vis.map.zfar) * extent
-        self._renderer: mujoco.Renderer | None = None
+        self._renderer: CameraRenderer | None = None
         self._renderer = self._make_renderer(desc.color)
         # the session's fixed errors at the native resolution, and at the streamed one
         self._session: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
@@ -78,10 +81,10 @@ class SimCamera:
             None if a is None else resample_to(a, shape) for a in self._session
         )
 
-    def _make_renderer(self, k: CameraIntrinsics) -> mujoco.Renderer:
+    def _make_renderer(self, k: CameraIntrinsics) -> CameraRenderer:
         self._check_model(self._model, k)
         try:
-            return mujoco.Renderer(self._model, height=k.height, width=k.width)
+            return CameraRenderer(self._model, k.width, k.height, self._cam_id)
         except Exception as e:  # no GL context, framebuffer too small, ...
             raise SimulationError(
                 f"cannot create the MuJoCo renderer for {self._camera!r} ({k.width}x{k.height}): "
@@ -165,13 +168,7 @@ class SimCamera:
         r = self._renderer
         if r is None:
             raise SimulationError(f"camera {self._camera!r} was closed")
-        r.update_scene(self._data, camera=self._cam_id)
-        color = r.render()
-        r.enable_depth_rendering()
-        try:
-            depth = r.render()
-        finally:
-            r.disable_depth_rendering()
+        color, depth = r.render(self._data)
         depth[depth >= np.float32(self._far * (1.0 - 1e-4))] = 0.0  # background: no surface
         return color, depth
 
@@ -208,12 +205,7 @@ class SimCamera:
         r = self._renderer
         if r is None:
             raise SimulationError(f"camera {self._camera!r} was closed")
-        r.update_scene(self._data, camera=self._cam_id)
-        r.enable_segmentation_rendering()
-        try:
-            seg = r.render()
-        finally:
-            r.disable_segmentation_rendering()
+        seg = r.segmentation(self._data)
         out = np.full(seg.shape[:2], -1, dtype=np.int32)
         is_geom = (seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM)) & (seg[..., 0] >= 0)
         out[is_geom] = self._model.geom_bodyid[seg[..., 0][is_geom]]
