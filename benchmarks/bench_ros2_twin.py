@@ -6,6 +6,8 @@ without the camera and once with it at ``--camera-rate`` Hz, and reports sim s /
 real-time factor it could sustain; >= 1 keeps up with the wall clock) and the messages
 published, and the sim seconds per CPU second of the process (all its threads): on this
 shared 2-core machine the wall clock counts other people's work too, the CPU time does not.
+With the camera it also reports the cost of one frame (``SimCamera.capture``: render and
+noise) in CPU ms (the process's, all threads, while it runs) and wall ms.
 A subscriber process (``--subscribe``) takes the scan, /odom, /tf and the images
 over DDS as a localization node would (so DDS serializes and sends them).
 
@@ -41,6 +43,22 @@ print(n, flush=True)
 """
 
 
+def _timed(obj: object, name: str) -> list[tuple[float, float]]:
+    """Wrap the method ``obj.name`` (on the instance) to record (CPU s, wall s) per call."""
+    calls: list[tuple[float, float]] = []
+    method = getattr(obj, name)
+
+    def timed(*args, **kwargs):
+        c0, t0 = time.process_time(), time.perf_counter()
+        try:
+            return method(*args, **kwargs)
+        finally:
+            calls.append((time.process_time() - c0, time.perf_counter() - t0))
+
+    setattr(obj, name, timed)
+    return calls
+
+
 def run(seconds: float, profile: str, camera: bool, rate: float, subscribe: bool) -> dict:
     from mmpa.apps.ros2_twin import TwinNode, twin_node_config
 
@@ -53,8 +71,10 @@ def run(seconds: float, profile: str, camera: bool, rate: float, subscribe: bool
     with TwinNode(cfg) as node:
         if sub is not None:
             time.sleep(3.0)  # discovery
+        frames: list[tuple[float, float]] = []
         if camera:
             node.world.camera.capture()  # the renderer's first frame (context creation)
+            frames = _timed(node.world.camera, "capture")
         cpu0 = time.process_time()
         stats = node.run(seconds)
         cpu = time.process_time() - cpu0
@@ -69,6 +89,10 @@ def run(seconds: float, profile: str, camera: bool, rate: float, subscribe: bool
         "cpu_s": round(cpu, 2),
         "rtf_cpu": round(stats.sim_s / cpu, 2),
         "published": stats.published,
+        # mean (CPU ms, wall ms) of one camera frame
+        "frame_ms": tuple(round(1e3 * sum(f[k] for f in frames) / len(frames), 1) for k in (0, 1))
+        if frames
+        else (),
     }
 
 
@@ -89,6 +113,9 @@ def main() -> None:
             f"{r['rtf_cpu']} sim s per CPU s  ({r['published']})",
             flush=True,
         )
+        if r["frame_ms"]:
+            cpu_ms, wall_ms = r["frame_ms"]
+            print(f"  one camera frame: {cpu_ms} ms CPU, {wall_ms} ms wall", flush=True)
 
 
 if __name__ == "__main__":
