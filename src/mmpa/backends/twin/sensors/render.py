@@ -129,17 +129,30 @@ class CameraRenderer:
         self._c = np.float64(np.float32(-0.5) * c - np.float32(0.5))  # reverse-Z mapping
         self._d = np.float64(np.float32(-0.5) * d)
 
-    def _current(self) -> mujoco.MjrContext:
+    def _update(self, data: mujoco.MjData) -> tuple[mujoco.MjrContext, mujoco.MjvScene]:
+        """Make the context current and the scene ``data``'s (default options, all
+        categories, as ``mujoco.Renderer.update_scene``)."""
         if self._con is None or self._gl is None:
             raise SimulationError("the camera renderer was closed")
         self._gl.make_current()
-        return self._con
+        scn = self._scene
+        mujoco.mjv_updateScene(self._model, data, self._option, None, self._cam, _CAT_ALL, scn)
+        return self._con, scn
+
+    def _render_segments(self, con: mujoco.MjrContext, scn: mujoco.MjvScene) -> None:
+        """Render the scene in segmentation mode (flat id colours, no multisampling,
+        lighting, reflection or skybox): ``mujoco.Renderer`` 's depth and segmentation."""
+        flags = scn.flags.copy()
+        scn.flags[_F.mjRND_SEGMENT] = scn.flags[_F.mjRND_IDCOLOR] = 1
+        try:
+            mujoco.mjr_render(self._rect, scn, con)
+        finally:
+            np.copyto(scn.flags, flags)
 
     def render(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """Colour (H, W, 3) uint8 and depth (H, W) float32 m (``far`` where no surface),
         new arrays; equal to ``mujoco.Renderer`` 's colour and depth renders."""
-        con, scn = self._current(), self._scene
-        mujoco.mjv_updateScene(self._model, data, self._option, None, self._cam, _CAT_ALL, scn)
+        con, scn = self._update(data)
         geoms = scn.geoms[: scn.ngeom]
         types = [int(g.type) for g in geoms]
         out_view, out_mirror = self._culled(geoms)
@@ -149,15 +162,11 @@ class CameraRenderer:
         mujoco.mjr_render(self._rect, scn, con)
         mujoco.mjr_readPixels(self._rgb, None, self._rect, con)
         color = np.ascontiguousarray(self._rgb[::-1])
-        # depth: segmentation mode (flat, no multisampling, lighting, reflection, skybox)
         for i in np.flatnonzero(out_view & ~out_mirror):
             geoms[i].type = _NONE
-        flags = scn.flags.copy()
-        scn.flags[_F.mjRND_SEGMENT] = scn.flags[_F.mjRND_IDCOLOR] = 1
         try:
-            mujoco.mjr_render(self._rect, scn, con)
+            self._render_segments(con, scn)  # depth
         finally:
-            np.copyto(scn.flags, flags)
             for g, t in zip(geoms, types, strict=True):
                 g.type = t
         mujoco.mjr_readPixels(None, self._raw, self._rect, con)
@@ -231,14 +240,8 @@ class CameraRenderer:
     def segmentation(self, data: mujoco.MjData) -> np.ndarray:
         """(H, W, 2) int32: the (object id, object type) seen at each pixel, (-1, -1) where
         none (as ``mujoco.Renderer`` 's segmentation rendering; every geom drawn)."""
-        con, scn = self._current(), self._scene
-        mujoco.mjv_updateScene(self._model, data, self._option, None, self._cam, _CAT_ALL, scn)
-        flags = scn.flags.copy()
-        scn.flags[_F.mjRND_SEGMENT] = scn.flags[_F.mjRND_IDCOLOR] = 1
-        try:
-            mujoco.mjr_render(self._rect, scn, con)
-        finally:
-            np.copyto(scn.flags, flags)
+        con, scn = self._update(data)
+        self._render_segments(con, scn)
         mujoco.mjr_readPixels(self._rgb, None, self._rect, con)
         im = self._rgb[::-1].astype(np.uint32)
         segimage = im[:, :, 0] + im[:, :, 1] * (2**8) + im[:, :, 2] * (2**16)
