@@ -327,8 +327,12 @@ def test_skip_table_is_each_cells_clearance() -> None:
 
 def test_beam_model_is_nav2s_mixture(world, grid) -> None:
     """The beam model against Nav2's ``BeamModel`` loop, beam by beam (with ranges shorter
-    than expected, so the z_short part is exercised)."""
-    c = AMCLConfig(laser_model_type="beam", max_beams=40, z_short=0.2, lambda_short=0.5)
+    than expected, so the z_short part is exercised); ``beam_form`` "product" (the default)
+    is the log of the same beams' ``pz`` summed."""
+    c = AMCLConfig(
+        laser_model_type="beam", max_beams=40, z_short=0.2, lambda_short=0.5,
+        beam_form="sum_of_cubes",
+    )  # fmt: skip
     amcl = AMCL(grid, laser_pose2d(world), c, np.random.default_rng(2))
     amcl.set_initial_pose(world.truth.base_pose2d())
     r, a = amcl._beams(world.lidar.scan())
@@ -336,6 +340,7 @@ def test_beam_model_is_nav2s_mixture(world, grid) -> None:
     p = amcl.beam_model(P, r, a)
     exp_r = amcl.raycast(P, a, amcl._rmax)
     want = np.ones(len(P))
+    log_want = np.zeros(len(P))
     for j in range(len(r)):
         z = r[j] - exp_r[:, j]
         pz = c.z_hit * np.exp(-(z * z) / (2 * c.sigma_hit * c.sigma_hit))
@@ -343,8 +348,11 @@ def test_beam_model_is_nav2s_mixture(world, grid) -> None:
         pz += c.z_max if r[j] == amcl._rmax else 0.0
         pz += c.z_rand / amcl._rmax if r[j] < amcl._rmax else 0.0
         want += pz * pz * pz
+        log_want += np.log(pz)
     assert np.mean(exp_r > r[None, :]) > 0.05  # z < 0 for some beams
     np.testing.assert_allclose(p, want, rtol=1e-12)
+    amcl.cfg = c.model_copy(update={"beam_form": "product"})
+    np.testing.assert_allclose(amcl.beam_model(P, r, a), np.exp(log_want - log_want.max()))
 
 
 def test_product_likelihood_field_finds_the_heading(world, grid) -> None:

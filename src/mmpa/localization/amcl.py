@@ -38,8 +38,16 @@ import numpy as np
 
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array
-from mmpa.localization.beam_model import RAY_BLOCK, beam_weights, march, raycast, skip_table
+from mmpa.localization.beam_model import (
+    RAY_BLOCK,
+    beam_log_likelihood,
+    beam_weights,
+    march,
+    raycast,
+    skip_table,
+)
 from mmpa.localization.config import AMCLConfig
+from mmpa.localization.global_search import GlobalSearch, SearchResult
 from mmpa.localization.likelihood_field import (
     laser_origin,
     likelihood_field,
@@ -50,7 +58,7 @@ from mmpa.localization.likelihood_field import (
 )
 from mmpa.localization.motion import compose_odom, moved_enough, odometry_delta, sample_motion
 from mmpa.localization.pose import PoseEstimate, check_scan, finite_cov, finite_pose, wrap
-from mmpa.localization.proposal import defensive_mixture
+from mmpa.localization.proposal import defensive_mixture, gaussian_fit
 from mmpa.localization.refine import Refinement, ScanRefiner
 from mmpa.localization.resampling import (
     cluster_labels,
@@ -132,6 +140,14 @@ class AMCL:
         self.refiner = ScanRefiner(grid, self.laser_pose)
         self.last_refinement: Refinement | None = None  # None: not tried at the last update
         self.refinements = 0  # accepted matches so far
+        c = self.cfg
+        self.global_search = GlobalSearch(
+            grid, self.refiner, c.global_search_resolution, c.global_search_ratio,
+            c.global_hypotheses, c.kld_bin_xy, c.kld_bin_theta, c.max_beams,
+        )  # fmt: skip
+        self.last_search: SearchResult | None = None  # the last global start's search
+        self._seed_pending = False  # the next update seeds the cloud by the global search
+        self.multimodal = False  # seeded from several hypotheses, not yet one cluster
 
     # --- initialization -----------------------------------------------------------------
     def set_initial_pose(self, pose: Array, cov: Array | None = None) -> None:
@@ -150,16 +166,51 @@ class AMCL:
         self._reset_bookkeeping()
 
     def global_localization(self) -> None:
-        """Particles uniform over the free space of the map, uniform headings."""
+        """Particles uniform over the free space of the map, uniform headings (Nav2); with
+        ``global_search`` the next update replaces them by particles around the poses where
+        its scan fits the map (:meth:`_seed`)."""
         n = self.cfg.max_particles
         self.particles = self._random_free_poses(n)
         self.weights = np.full(n, 1.0 / n)
         self._reset_bookkeeping()
+        self._seed_pending = self.cfg.global_search
 
     def _reset_bookkeeping(self) -> None:
         self.w_slow = self.w_fast = 0.0
         self._force_update = True
         self._estimate = None
+        self._seed_pending = self.multimodal = False
+
+    def _seed(self, odom_pose: Array, scan: LaserScan) -> PoseEstimate:
+        """The global start (``global_search``): the whole-map search of ``scan``
+        (:class:`~mmpa.localization.global_search.GlobalSearch`); ``max_particles`` shared
+        evenly among its hypotheses, each drawn from ``N(h, inflate^2 C_h + diag(floor^2))``
+        (the refinement's proposal), weighted by the laser model, resampled. No hypothesis
+        (too few beams, nothing fits): the uniform cloud stays and the next scan is
+        searched."""
+        c = self.cfg
+        res = self.global_search.search(scan)
+        self.last_search = res
+        self._odom_prev = odom_pose.copy()
+        if not res.ok:
+            return self._current(updated=False)
+        hyps = res.hypotheses
+        n = c.max_particles
+        counts = np.full(len(hyps), n // len(hyps))
+        counts[: n % len(hyps)] += 1
+        floor = np.diag([c.refine_floor_xy**2, c.refine_floor_xy**2, c.refine_floor_theta**2])
+        parts = []
+        for h, k in zip(hyps, counts, strict=True):
+            L = np.linalg.cholesky(c.refine_inflate**2 * 0.5 * (h.cov + h.cov.T) + floor)
+            parts.append(self.rng.standard_normal((int(k), 3)) @ L.T + h.pose)
+        self.particles = np.concatenate(parts)
+        self.particles[:, 2] = wrap(self.particles[:, 2])
+        self.weights = np.full(n, 1.0 / n)
+        self._seed_pending = False
+        self.multimodal = len(hyps) > 1
+        self._apply_weights(self.measurement_weights(self.particles, scan))
+        self.resample()
+        return self._finish_update(odom_pose)
 
     def _random_free_poses(self, n: int) -> Array:
         cells = self._free_cells[self.rng.integers(0, len(self._free_cells), n)]
@@ -270,17 +321,21 @@ class AMCL:
         return self._skip
 
     def beam_model(self, particles: Array, ranges: Array, angles: Array) -> Array:
-        """Nav2 ``BeamModel``: ``p = 1 + sum pz^3`` with the four-part mixture of ch. 6.3,
-        ``pz = z_hit exp(-z^2 / (2 sigma_hit^2)) + [z < 0] z_short lambda_short
-        exp(-lambda_short r) + z_rand / z_max`` for ``z = r - r_expected`` (the ``z_max``
-        part never applies: beams at or past ``z_max`` are dropped by :meth:`_beams`).
-        (N, 3) particles, (B,) ranges and angles -> (N,)."""
+        """The beam model with the four-part mixture of ch. 6.3, ``pz = z_hit exp(-z^2 / (2
+        sigma_hit^2)) + [z < 0] z_short lambda_short exp(-lambda_short r) + z_rand / z_max``
+        for ``z = r - r_expected`` (the ``z_max`` part never applies: beams at or past
+        ``z_max`` are dropped by :meth:`_beams`): ``beam_form`` "product" multiplies the
+        beams (Thrun et al. Table 6.1; returned divided by the largest: (0, 1]),
+        "sum_of_cubes" is Nav2's ``BeamModel``, ``p = 1 + sum pz^3``. (N, 3) particles, (B,)
+        ranges and angles -> (N,)."""
         c = self.cfg
         zmax = self._rmax
         z = self.raycast(particles, angles, zmax)
-        return beam_weights(
-            z, ranges, c.z_hit, c.z_short, c.z_rand, c.lambda_short, c.sigma_hit, zmax
-        )
+        args = (z, ranges, c.z_hit, c.z_short, c.z_rand, c.lambda_short, c.sigma_hit, zmax)
+        if c.beam_form == "sum_of_cubes":
+            return beam_weights(*args)
+        ll = beam_log_likelihood(*args)
+        return np.exp(ll - ll.max())
 
     def measurement_weights(self, particles: Array, scan: LaserScan) -> Array:
         """The weights (N,) of the laser model ``laser_model_type`` (:data:`LASER_MODELS`)."""
@@ -317,14 +372,65 @@ class AMCL:
         check_scan(scan)
         if not (force or self._should_update(odom_pose)):
             return self._current(updated=False)
+        if self._seed_pending:
+            return self._seed(odom_pose, scan)
         self.predict(odom_pose)
-        if not (self.cfg.scan_refine and self._refined_weights(scan)):
+        if self.multimodal and self.cfg.scan_refine:
+            self._refine_clusters(scan)
+        elif not (self.cfg.scan_refine and self._refined_weights(scan)):
             p = self.measurement_weights(self.particles, scan)
             self._apply_weights(p)
         self._resample_count += 1
         if self._resample_count % self.cfg.resample_interval == 0:
             self.resample()
+        if self.multimodal:
+            c = self.cfg
+            self.multimodal = bool(
+                cluster_labels(self.particles, c.kld_bin_xy, c.kld_bin_theta).max() > 0
+            )
         return self._finish_update(odom_pose)
+
+    def _refine_clusters(self, scan: LaserScan) -> None:
+        """The scan refinement of every cluster (the cloud seeded from several hypotheses):
+        each cluster's weighted mean is matched, and the cluster's particles are redrawn from
+        its own defensive mixture (:func:`defensive_mixture` on the cluster, ``p`` its
+        Gaussian fit); a cluster whose match is refused, wider than ``refine_max_sd`` or
+        past the ``global_hypotheses`` heaviest keeps its particles. Every particle weighs
+        its cluster's mass times the importance factor times the laser model (one call, so
+        the clusters compare)."""
+        c = self.cfg
+        q_floor = np.diag([c.refine_floor_xy**2, c.refine_floor_xy**2, c.refine_floor_theta**2])
+        labels = cluster_labels(self.particles, c.kld_bin_xy, c.kld_bin_theta)
+        masses = np.bincount(labels, weights=self.weights)
+        xs, lws, best = [], [], None
+        for rank, lab in enumerate(np.argsort(-masses, kind="stable")):
+            sel = labels == lab
+            if not sel.any():
+                continue
+            x, w = self.particles[sel], self.weights[sel]
+            mass = float(w.sum())
+            mean, cov = gaussian_fit(x, w / mass)
+            ref = None
+            sd = np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0))
+            if rank < c.global_hypotheses and sd <= c.refine_max_sd:
+                ref = self.refiner.match(mean, scan)
+            if ref is not None and ref.ok:
+                q = c.refine_inflate**2 * ref.cov + q_floor
+                x, log_f = defensive_mixture(x, w / mass, ref.pose, q, c.refine_fraction, self.rng)
+                lw = np.log(mass / len(x)) + log_f
+                self.refinements += 1
+            else:
+                lw = np.log(np.maximum(w, 1e-300))
+            if rank == 0:
+                best = ref
+            xs.append(x)
+            lws.append(lw)
+        self.last_refinement = best
+        self.particles = np.concatenate(xs)
+        lw = np.concatenate(lws)
+        self.weights = np.exp(lw - lw.max())
+        self.weights /= self.weights.sum()
+        self._apply_weights(self.measurement_weights(self.particles, scan))
 
     def _refined_weights(self, scan: LaserScan) -> bool:
         """The scan refinement (:mod:`mmpa.localization.refine`): match the predicted cloud's

@@ -2,7 +2,8 @@
 
 :func:`raycast` finds the expected range of every (particle, beam) by sphere tracing in the
 occupancy grid (:func:`skip_table`); :func:`beam_weights` turns expected and measured ranges
-into ``p = 1 + sum_b pz_b^3`` with the mixture ``pz = z_hit exp(-z^2 / (2 sigma_hit^2)) +
+into Nav2's ``p = 1 + sum_b pz_b^3``, :func:`beam_log_likelihood` into the textbook product's
+``log p = sum_b log pz_b``, with the mixture ``pz = z_hit exp(-z^2 / (2 sigma_hit^2)) +
 [z < 0] z_short lambda_short exp(-lambda_short r) + z_rand / z_max``, ``z = r - r_expected``.
 
 Units: m, rad. Particles ``[x, y, theta]`` in ``map``, the lidar mount ``[x, y, yaw]`` in
@@ -21,7 +22,15 @@ from mmpa.maps.occupancy import OccupancyGrid
 
 RAY_BLOCK = 32768  # rays marched together by raycast (their arrays fit the L2 cache)
 
-__all__ = ["RAY_BLOCK", "beam_weights", "march", "raycast", "skip_table"]
+__all__ = [
+    "RAY_BLOCK",
+    "beam_log_likelihood",
+    "beam_pz",
+    "beam_weights",
+    "march",
+    "raycast",
+    "skip_table",
+]
 
 
 def skip_table(grid: OccupancyGrid) -> Array:
@@ -139,6 +148,38 @@ def beam_weights(
     """Nav2 ``BeamModel``'s ``p = 1 + sum pz^3`` (N,) from the ``expected`` ranges (N, B)
     (overwritten) and the measured ``ranges`` (B,). The ``z_max`` part never applies: beams at
     or past ``z_max`` are dropped before."""
+    pz = beam_pz(expected, ranges, z_hit, z_short, z_rand, lambda_short, sigma_hit, zmax)
+    return 1.0 + np.einsum("ij,ij,ij->i", pz, pz, pz)
+
+
+def beam_log_likelihood(
+    expected: Array,
+    ranges: Array,
+    z_hit: float,
+    z_short: float,
+    z_rand: float,
+    lambda_short: float,
+    sigma_hit: float,
+    zmax: float,
+) -> Array:
+    """The beam model as a likelihood (Thrun et al. Table 6.1: the beams' ``pz`` multiplied,
+    not Nav2's sum of cubes): ``log p = sum_b log pz_b`` (N,), ``pz`` as :func:`beam_weights`
+    (``expected`` overwritten)."""
+    pz = beam_pz(expected, ranges, z_hit, z_short, z_rand, lambda_short, sigma_hit, zmax)
+    return np.log(pz).sum(axis=1)
+
+
+def beam_pz(
+    expected: Array,
+    ranges: Array,
+    z_hit: float,
+    z_short: float,
+    z_rand: float,
+    lambda_short: float,
+    sigma_hit: float,
+    zmax: float,
+) -> Array:
+    """The mixture ``pz`` (N, B) of every beam (module docstring), in ``expected``'s array."""
     z = expected
     np.subtract(ranges[None, :], z, out=z)
     # the short and random parts per beam: [z < 0] picks the first row
@@ -151,4 +192,4 @@ def beam_weights(
     pz = np.exp(z, out=z)
     pz *= z_hit
     pz += part
-    return 1.0 + np.einsum("ij,ij,ij->i", pz, pz, pz)
+    return pz

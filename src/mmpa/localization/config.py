@@ -43,6 +43,11 @@ class AMCLConfig(BaseModel):
     laser_model_type: Literal["likelihood_field", "likelihood_field_prob", "beam"] = (
         "likelihood_field_prob"
     )
+    # the beam model's combination of its beams: "product" (Thrun et al. Table 6.1, a
+    # likelihood like likelihood_field_prob; the default: the scan refinement's importance
+    # weights need one, and with Nav2's sum of cubes AMCL at the other defaults lost the
+    # track of the real logs from the true pose within 5-15 scans) or Nav2's "sum_of_cubes"
+    beam_form: Literal["product", "sum_of_cubes"] = "product"
     laser_likelihood_max_dist: float = Field(2.0, gt=0)
     laser_max_range: float = 100.0  # -1: use the scan's range_max
     laser_min_range: float = -1.0  # -1: use the scan's range_min
@@ -94,6 +99,19 @@ class AMCLConfig(BaseModel):
     refine_floor_xy: float = Field(0.02, gt=0)
     refine_floor_theta: float = Field(0.01, gt=0)
     refine_max_sd: float = Field(1.0, gt=0)
+    # improvement (issue 34; mmpa.localization.global_search): a global start
+    # (global_localization()) seeds the cloud from a whole-map correlative search of the
+    # first scan (branch and bound on a ``global_search_resolution`` grid, every pose within
+    # ``global_search_ratio`` of the best score, the best of each KLD bin neighbourhood,
+    # each refined by Hector; at most ``global_hypotheses``), max_particles shared among the
+    # hypotheses, and while the cloud holds more than one cluster the scan refinement
+    # matches every cluster. Off: Nav2's cloud uniform over the free space.
+    global_search: bool = True
+    # m: Hector's +-0.3 m correlative window takes a hypothesis half a 0.2 m cell off; the
+    # search's time falls with the cube of the cell (0.1 m: 2-10 s on the real logs)
+    global_search_resolution: float = Field(0.2, gt=0)
+    global_search_ratio: float = Field(0.9, gt=0, le=1)
+    global_hypotheses: int = Field(20, ge=1)
 
     @classmethod
     def paper(cls) -> AMCLConfig:
@@ -105,6 +123,8 @@ class AMCLConfig(BaseModel):
             update_min_a=0.2,
             update_min_d=0.25,
             scan_refine=False,
+            global_search=False,
+            beam_form="sum_of_cubes",
         )
 
     @classmethod
@@ -126,6 +146,8 @@ class AMCLConfig(BaseModel):
             update_min_a=0.2,
             update_min_d=0.25,
             scan_refine=False,
+            global_search=False,
+            beam_form="sum_of_cubes",
         )
 
 
