@@ -20,6 +20,7 @@ from mmpa.backends.twin.noise import (
     color_noise,
     depth_edges,
     depth_noise,
+    edge_neighbours,
     odometry_increment_noise,
     range_noise,
     standard_normal_f32,
@@ -233,6 +234,24 @@ def test_depth_edges_against_a_pixel_loop() -> None:
         np.testing.assert_array_equal(other[ok], o_ref[ok])
         _, o32 = depth_edges(z.astype(np.float32), 0.05)  # float32 stays float32
         assert o32.dtype == np.float32
+
+
+def test_edge_neighbours_is_depth_edges_at_its_edges() -> None:
+    """The edge-only search gives depth_edges' edges (ascending flat indices) and, bit for
+    bit, its neighbour depths there, ties included (levels repeat), in float32 and float64."""
+    rng = np.random.default_rng(7)
+    levels = np.array([0.0, 0.5, 0.6, 1.0, 1.02, 2.0])
+    for dtype in (np.float32, np.float64):
+        for _ in range(20):
+            z = (rng.choice(levels, size=(19, 31)) + rng.integers(0, 3, (19, 31)) * 0.03).astype(
+                dtype
+            )
+            z[rng.random(z.shape) < 0.1] = 0.0  # invalid pixels are 0, as depth_noise leaves them
+            edge, other = depth_edges(z, 0.05)
+            idx, nb = edge_neighbours(z, 0.05)
+            np.testing.assert_array_equal(idx, np.flatnonzero(edge))
+            assert nb.dtype == z.dtype
+            np.testing.assert_array_equal(nb, other.reshape(-1)[idx])
 
 
 def test_depth_noise_sigma_scale_and_holes() -> None:

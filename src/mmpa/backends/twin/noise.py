@@ -25,6 +25,7 @@ __all__ = [
     "depth_bias_pattern",
     "depth_edges",
     "depth_noise",
+    "edge_neighbours",
     "odometry_increment_noise",
     "range_noise",
     "resample_to",
@@ -121,6 +122,34 @@ def depth_edges(depth: np.ndarray, threshold: float) -> tuple[np.ndarray, np.nda
         np.copyto(b, jump, where=better)
         np.copyto(other[px], zc[nb], where=better)
     return best > threshold, other
+
+
+def edge_neighbours(z: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`depth_edges` at its edges only: the flat indices (int64, ascending) of the
+    depth-discontinuity pixels of ``z`` (H, W) (valid where ``> 0``; invalid pixels must
+    already be 0) and, for each, the depth of the 4-neighbour across the largest jump (ties:
+    right, left, lower, upper), the values :func:`depth_edges` gives there. The largest jump
+    of every pixel is a running maximum; the neighbour is searched at the edges alone."""
+    h, w = z.shape
+    valid = z > 0
+    jh = np.abs(z[:, 1:] - z[:, :-1])
+    jh[~(valid[:, 1:] & valid[:, :-1])] = 0
+    jv = np.abs(z[1:] - z[:-1])
+    jv[~(valid[1:] & valid[:-1])] = 0
+    best = np.zeros_like(z)
+    best[:, :-1] = jh
+    np.maximum(best[:, 1:], jh, out=best[:, 1:])
+    np.maximum(best[:-1], jv, out=best[:-1])
+    np.maximum(best[1:], jv, out=best[1:])
+    idx = np.flatnonzero(best > threshold)
+    r, c = np.divmod(idx, w)
+    jumps = np.zeros((4, idx.size), dtype=z.dtype)  # right, left, lower, upper
+    for k, (ok, jj, rr, cc) in enumerate(
+        ((c < w - 1, jh, r, c), (c > 0, jh, r, c - 1), (r < h - 1, jv, r, c), (r > 0, jv, r - 1, c))
+    ):
+        jumps[k, ok] = jj[rr[ok], cc[ok]]
+    k = np.argmax(jumps, axis=0)  # the first of the largest
+    return idx, z[r + np.array([0, 0, 1, -1])[k], c + np.array([1, -1, 0, 0])[k]]
 
 
 def correlated_field(
@@ -280,12 +309,12 @@ def depth_noise(
     scale = 1.0 + rng.normal(0.0, cfg.depth_scale_sigma)
 
     if cfg.flying_pixel_fraction > 0:
-        edge, other = depth_edges(z, cfg.edge_threshold)
-        idx = np.flatnonzero(edge)
-        fly = idx[rng.random(idx.size) < cfg.flying_pixel_fraction]
+        idx, other = edge_neighbours(z, cfg.edge_threshold)
+        pick = rng.random(idx.size) < cfg.flying_pixel_fraction
+        fly = idx[pick]
         t = rng.random(fly.size, dtype=np.float32)
         zf = z.reshape(-1)  # a view of the fresh array z
-        zf[fly] = zf[fly] + t * (other.reshape(-1)[fly] - zf[fly])
+        zf[fly] = zf[fly] + t * (other[pick] - zf[fly])
 
     z *= np.float32(scale)
     white = cfg.subpixel * np.sqrt(1.0 - cfg.correlated_fraction)
