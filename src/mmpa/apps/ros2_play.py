@@ -12,11 +12,20 @@ without one gets rosbag2's default (reliable, volatile, keep last 10), except ``
 local, keep last 1) so that a late subscriber still gets them.
 
 Pacing: message ``i`` goes out at ``wall_0 + (t_i - t_0) / rate`` (``t``: the bag's log time,
-s). ``/clock`` (``rosgraph_msgs/Clock``, the bag's log time) is published before each message
-whose time is later than the last clock and every ``1 / clock_hz`` wall s while waiting (not
-when the bag holds ``/clock`` itself): run the other nodes with ``use_sim_time:=true``.
-``loop`` plays the bag again from the start (the clock goes back); ``delay`` s are waited
-after the publishers are created (for discovery) before the first message.
+s). ``/clock`` (``rosgraph_msgs/Clock``, reliable, the bag's log time) is published before each
+message whose time is later than the last clock, and every ``1 / clock_hz`` wall s while
+waiting (not when the bag holds ``/clock`` itself): the clock is at ``t_i`` when message ``i``
+is published, and the last ``/clock`` of a pass is the last message's time (``/clock`` is
+another writer than the topics': a subscriber may take it after the message). Run the other
+nodes with ``use_sim_time:=true``. ``loop`` plays the bag again from the start (the clock
+goes back); ``delay`` s are waited after the publishers are created (for discovery) before
+the first message.
+
+End: after the last pass the player waits up to ``ack_timeout`` wall s until every reliable
+subscriber has acknowledged every message and ``/clock`` (DDS ``wait_for_acknowledgments``,
+rosbag2's ``--wait-for-all-acked``): a reliable writer deleted at exit drops what is still
+unacknowledged, so without the wait the last messages can be lost on a loaded machine
+(ros2/rosbag2#571). Topics still unacknowledged then are logged.
 """
 
 from __future__ import annotations
@@ -27,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
+from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
@@ -49,6 +59,7 @@ class PlayConfig(BaseModel):
     loop: bool = False
     delay: float = Field(0.0, ge=0)  # wall s before the first message (discovery)
     clock_hz: float = Field(100.0, gt=0)  # /clock while waiting between messages, per wall s
+    ack_timeout: float = Field(5.0, ge=0)  # wall s for the subscribers' acks at the end
     topics: list[str] | None = None  # only these (None: all)
 
 
@@ -155,14 +166,30 @@ class BagPlayer:
             published[conn.topic] = published.get(conn.topic, 0) + 1
         self.stats.passes += 1
 
+    def wait_acked(self) -> list[str]:
+        """Wait up to ``ack_timeout`` wall s in all until the reliable subscribers have
+        acknowledged everything published (best-effort publishers: at once); the topics
+        still unacknowledged (logged)."""
+        deadline = time.monotonic() + self.cfg.ack_timeout
+        late = []
+        for topic, pub in [*self.pubs.items(), ("/clock", self._clock)]:
+            left = max(0.0, deadline - time.monotonic())
+            if not pub.wait_for_all_acked(Duration(nanoseconds=round(left * 1e9))):
+                late.append(topic)
+        if late:
+            self.log.warning(f"not acknowledged within {self.cfg.ack_timeout:g} s: {late}")
+        return late
+
     def play(self) -> PlayStats:
-        """Wait ``delay``, then play once (or until interrupted with ``loop``)."""
+        """Wait ``delay``, then play once (or until interrupted with ``loop``), then wait for
+        the acknowledgments (module docstring)."""
         wall = time.monotonic()
         time.sleep(self.cfg.delay)
         try:
             self.play_once()
             while self.cfg.loop:
                 self.play_once()
+            self.wait_acked()
         finally:
             self.stats.wall_s = time.monotonic() - wall
         return self.stats
