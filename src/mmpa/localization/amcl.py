@@ -57,8 +57,9 @@ from mmpa.localization.likelihood_field import (
     subsample_beams,
 )
 from mmpa.localization.motion import compose_odom, moved_enough, odometry_delta, sample_motion
+from mmpa.localization.multimodal import cluster_weights, draw_clusters, seed_weights
 from mmpa.localization.pose import PoseEstimate, check_scan, finite_cov, finite_pose, wrap
-from mmpa.localization.proposal import defensive_mixture, gaussian_fit
+from mmpa.localization.proposal import defensive_mixture
 from mmpa.localization.refine import Refinement, ScanRefiner
 from mmpa.localization.resampling import (
     cluster_labels,
@@ -185,30 +186,30 @@ class AMCL:
         """The global start (``global_search``): the whole-map search of ``scan``
         (:class:`~mmpa.localization.global_search.GlobalSearch`); ``max_particles`` shared
         evenly among its hypotheses, each drawn from ``N(h, inflate^2 C_h + diag(floor^2))``
-        (the refinement's proposal), weighted by the laser model, resampled. No hypothesis
-        (too few beams, nothing fits): the uniform cloud stays and the next scan is
-        searched."""
-        c = self.cfg
+        (the refinement's proposal, :meth:`_proposal_cov`), weighted by
+        :func:`~mmpa.localization.multimodal.seed_weights`, resampled. No hypothesis (too
+        few beams, nothing fits): the uniform cloud stays and the next scan is searched."""
         res = self.global_search.search(scan)
         self.last_search = res
         self._odom_prev = odom_pose.copy()
         if not res.ok:
             return self._current(updated=False)
         hyps = res.hypotheses
-        n = c.max_particles
-        counts = np.full(len(hyps), n // len(hyps))
-        counts[: n % len(hyps)] += 1
-        floor = np.diag([c.refine_floor_xy**2, c.refine_floor_xy**2, c.refine_floor_theta**2])
-        parts = []
-        for h, k in zip(hyps, counts, strict=True):
-            L = np.linalg.cholesky(c.refine_inflate**2 * 0.5 * (h.cov + h.cov.T) + floor)
-            parts.append(self.rng.standard_normal((int(k), 3)) @ L.T + h.pose)
-        self.particles = np.concatenate(parts)
-        self.particles[:, 2] = wrap(self.particles[:, 2])
-        self.weights = np.full(n, 1.0 / n)
+        n = self.cfg.max_particles
+        groups = np.arange(n) % len(hyps)
+        poses = np.array([h.pose for h in hyps])
+        covs = [self._proposal_cov(h.cov) for h in hyps]
+        x = np.empty((n, 3))
+        for k, cov in enumerate(covs):
+            sel = groups == k
+            x[sel] = self.rng.standard_normal((int(sel.sum()), 3)) @ np.linalg.cholesky(cov).T
+            x[sel] += poses[k]
+        x[:, 2] = wrap(x[:, 2])
+        lik = self.measurement_weights(np.concatenate([x, poses]), scan)
+        self.particles = x
+        self.weights = seed_weights(x, groups, poses, covs, lik)
         self._seed_pending = False
         self.multimodal = len(hyps) > 1
-        self._apply_weights(self.measurement_weights(self.particles, scan))
         self.resample()
         return self._finish_update(odom_pose)
 
@@ -390,47 +391,43 @@ class AMCL:
             )
         return self._finish_update(odom_pose)
 
-    def _refine_clusters(self, scan: LaserScan) -> None:
-        """The scan refinement of every cluster (the cloud seeded from several hypotheses):
-        each cluster's weighted mean is matched, and the cluster's particles are redrawn from
-        its own defensive mixture (:func:`defensive_mixture` on the cluster, ``p`` its
-        Gaussian fit); a cluster whose match is refused, wider than ``refine_max_sd`` or
-        past the ``global_hypotheses`` heaviest keeps its particles. Every particle weighs
-        its cluster's mass times the importance factor times the laser model (one call, so
-        the clusters compare)."""
+    def _proposal_cov(self, cov: Array) -> Array:
+        """``inflate^2 C + diag(floor^2)`` of a match's covariance ``C``, its eigenvalues
+        clipped to ``[0, refine_max_sd^2]`` (a match along a corridor has a near-singular
+        ``H``: ``C`` huge or, by rounding, indefinite; the proposal stays a cluster's width)."""
         c = self.cfg
-        q_floor = np.diag([c.refine_floor_xy**2, c.refine_floor_xy**2, c.refine_floor_theta**2])
+        ev, vec = np.linalg.eigh(0.5 * (cov + cov.T))
+        ev = np.clip(np.nan_to_num(ev, nan=0.0), 0.0, c.refine_max_sd**2)
+        floor = [c.refine_floor_xy**2, c.refine_floor_xy**2, c.refine_floor_theta**2]
+        return c.refine_inflate**2 * (vec * ev) @ vec.T + np.diag(floor)
+
+    def _refine_clusters(self, scan: LaserScan) -> None:
+        """The scan refinement of every cluster while the cloud is multi-modal
+        (:mod:`mmpa.localization.multimodal`): the ``global_hypotheses`` heaviest clusters
+        within ``refine_max_sd`` are matched from their means; the laser model at all
+        particles and matches in one call, so that the clusters compare."""
+        c = self.cfg
         labels = cluster_labels(self.particles, c.kld_bin_xy, c.kld_bin_theta)
-        masses = np.bincount(labels, weights=self.weights)
-        xs, lws, best = [], [], None
-        for rank, lab in enumerate(np.argsort(-masses, kind="stable")):
-            sel = labels == lab
-            if not sel.any():
-                continue
-            x, w = self.particles[sel], self.weights[sel]
-            mass = float(w.sum())
-            mean, cov = gaussian_fit(x, w / mass)
-            ref = None
+
+        def match(mean: Array, cov: Array, rank: int) -> Refinement | None:
             sd = np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2]).max(), 0.0))
-            if rank < c.global_hypotheses and sd <= c.refine_max_sd:
-                ref = self.refiner.match(mean, scan)
-            if ref is not None and ref.ok:
-                q = c.refine_inflate**2 * ref.cov + q_floor
-                x, log_f = defensive_mixture(x, w / mass, ref.pose, q, c.refine_fraction, self.rng)
-                lw = np.log(mass / len(x)) + log_f
-                self.refinements += 1
-            else:
-                lw = np.log(np.maximum(w, 1e-300))
-            if rank == 0:
-                best = ref
-            xs.append(x)
-            lws.append(lw)
-        self.last_refinement = best
-        self.particles = np.concatenate(xs)
-        lw = np.concatenate(lws)
-        self.weights = np.exp(lw - lw.max())
-        self.weights /= self.weights.sum()
-        self._apply_weights(self.measurement_weights(self.particles, scan))
+            if rank >= c.global_hypotheses or sd > c.refine_max_sd:
+                return None
+            return self.refiner.match(mean, scan)
+
+        floor = np.array([c.refine_floor_xy, c.refine_floor_xy, c.refine_floor_theta])
+        draws = draw_clusters(
+            self.particles, self.weights, labels, match, self._proposal_cov,
+            c.refine_fraction, floor, self.rng,
+        )  # fmt: skip
+        self.last_refinement = draws[0].ref
+        self.refinements += sum(d.peak is not None for d in draws)
+        self.particles = np.concatenate([d.x for d in draws])
+        peaks = [d.peak for d in draws if d.peak is not None]
+        lik = self.measurement_weights(
+            np.concatenate([self.particles, *[p[None] for p in peaks]]), scan
+        )
+        self.weights = cluster_weights(draws, lik)
 
     def _refined_weights(self, scan: LaserScan) -> bool:
         """The scan refinement (:mod:`mmpa.localization.refine`): match the predicted cloud's

@@ -122,17 +122,20 @@ class SearchGrid:
         return np.column_stack([x, y, th])
 
 
-def _scores(table: Array, off: Array, a: Array, cx: Array, cy: Array) -> Array:
-    """``(1 / k) sum_i table[cy + oy_ai, cx + ox_ai]`` per node (0 off the table), in chunks."""
+def _scores(table: Array, pad: int, off: Array, a: Array, cx: Array, cy: Array) -> Array:
+    """``(1 / k) sum_i table[cy + oy_ai + pad, cx + ox_ai + pad]`` per node, ``table`` padded
+    with ``pad`` zero cells on every side (an index past it is clipped into the zero ring:
+    ``pad`` >= the window of a level's table, so a window clipped there lies wholly off the
+    map), in chunks."""
     h, w = table.shape
-    tp = np.pad(table, 1).ravel()  # a zero ring: indices clipped into it score 0
+    flat = table.ravel()
     out = np.empty(len(a))
     for i in range(0, len(a), CHUNK):
         j = slice(i, i + CHUNK)
         o = off[a[j]]
-        col = np.clip(cx[j, None] + o[:, :, 0] + 1, 0, w + 1)
-        row = np.clip(cy[j, None] + o[:, :, 1] + 1, 0, h + 1)
-        out[j] = tp[row * (w + 2) + col].mean(axis=1)
+        col = np.clip(cx[j, None] + o[:, :, 0] + pad, 0, w - 1)
+        row = np.clip(cy[j, None] + o[:, :, 1] + pad, 0, h - 1)
+        out[j] = flat[row * w + col].mean(axis=1)
     return out
 
 
@@ -142,8 +145,9 @@ def exhaustive_scores(sg: SearchGrid, pts: Array, n_theta: int) -> Array:
     h, w = sg.table.shape
     cy, cx = np.mgrid[0:h, 0:w]
     out = np.full((n_theta, h, w), -np.inf)
+    t = np.pad(sg.table, 1)
     for a in range(n_theta):
-        s = _scores(sg.table, off, np.full(h * w, a), cx.ravel(), cy.ravel()).reshape(h, w)
+        s = _scores(t, 1, off, np.full(h * w, a), cx.ravel(), cy.ravel()).reshape(h, w)
         out[a][sg.free] = s[sg.free]
     return out
 
@@ -160,7 +164,12 @@ def _children(a: Array, cx: Array, cy: Array, s: int) -> tuple[Array, Array, Arr
 
 
 def _dive(
-    tables: list[Array], frees: list[Array], off: Array, node: tuple[int, int, int], top: int
+    tables: list[Array],
+    pad: int,
+    frees: list[Array],
+    off: Array,
+    node: tuple[int, int, int],
+    top: int,
 ) -> float:
     """The score of the leaf reached from ``node`` = (a, cx, cy) at the top level by always
     entering the child of the highest bound (a lower bound of the best score)."""
@@ -171,10 +180,10 @@ def _dive(
         if not ok.any():
             return -np.inf
         a, cx, cy = a[ok], cx[ok], cy[ok]
-        b = _scores(tables[h - 1], off, a, cx, cy)
+        b = _scores(tables[h - 1], pad, off, a, cx, cy)
         k = int(np.argmax(b))
         a, cx, cy = a[k : k + 1], cx[k : k + 1], cy[k : k + 1]
-    return float(_scores(tables[0], off, a, cx, cy)[0])
+    return float(_scores(tables[0], pad, off, a, cx, cy)[0])
 
 
 def _inside_free(free: Array, cx: Array, cy: Array) -> Array:
@@ -192,9 +201,9 @@ def branch_and_bound(
     if not 0 < ratio <= 1:
         raise InvalidInputError(f"ratio must be in (0, 1], got {ratio}")
     off = sg.offsets(pts, n_theta)
-    tables = pooled(sg.table, levels)
-    frees = pooled(sg.free, levels, np.logical_or)
     s = 1 << levels
+    tables = pooled(np.pad(sg.table, s), levels)  # s zero cells on every side: _scores
+    frees = pooled(sg.free, levels, np.logical_or)
     h, w = sg.table.shape
     gy, gx = np.mgrid[0:h:s, 0:w:s]
     gx, gy = gx.ravel(), gy.ravel()
@@ -202,16 +211,16 @@ def branch_and_bound(
     gx, gy = gx[keep], gy[keep]
     a = np.repeat(np.arange(n_theta), len(gx))
     cx, cy = np.tile(gx, n_theta), np.tile(gy, n_theta)
-    bound = _scores(tables[levels], off, a, cx, cy)
+    bound = _scores(tables[levels], s, off, a, cx, cy)
     nodes = len(a)
     first = np.argsort(-bound)[:dives]
-    best = max(_dive(tables, frees, off, (a[i], cx[i], cy[i]), levels) for i in first)
+    best = max(_dive(tables, s, frees, off, (a[i], cx[i], cy[i]), levels) for i in first)
     for lv in range(levels, 0, -1):
         k = bound >= ratio * best
         a, cx, cy = _children(a[k], cx[k], cy[k], 1 << (lv - 1))
         ok = _inside_free(frees[lv - 1], cx, cy)
         a, cx, cy = a[ok], cx[ok], cy[ok]
-        bound = _scores(tables[lv - 1], off, a, cx, cy)
+        bound = _scores(tables[lv - 1], s, off, a, cx, cy)
         nodes += len(a)
         if lv == 1:
             best = max(best, float(bound.max(initial=-np.inf)))
