@@ -255,7 +255,10 @@ class LocalizationNode:
         self.pending = ("pose", pose, cov if np.any(cov) else None)
 
     def on_global(self, request: Any, response: Any) -> Any:
-        self.node.get_logger().info("global localization: particles over the free space")
+        self.node.get_logger().info(
+            "global localization (AMCL.global_localization): the next scan is searched over "
+            "the whole map (amcl.global_search; off: particles over the free space)"
+        )
         self.pending = ("global", None, None)
         return response
 
