@@ -26,7 +26,7 @@ from mmpa.localization.global_search import (
 from mmpa.localization.pose import wrap
 from mmpa.localization.refine import ScanRefiner, scan_endpoints
 from mmpa.maps.occupancy import OccupancyGrid
-from mmpa.robot.interfaces import LaserScan
+from test_amcl_refine import _scan  # a 180 deg scan ray cast in the grid
 
 RES = 0.05
 
@@ -46,14 +46,6 @@ def _room(symmetric: bool = False) -> OccupancyGrid:
         d[69, 60:101] = 100
         d[20:23, 30:33] = 100
     return OccupancyGrid(d, RES)
-
-
-def _scan(amcl: AMCL, pose: np.ndarray, n: int = 181) -> LaserScan:
-    """A 180 deg scan of ``n`` beams from ``pose`` (ray cast in the grid)."""
-    ang = np.linspace(-np.pi / 2, np.pi / 2, n)
-    r = amcl.raycast(pose[None, :], ang, 30.0)[0]
-    return LaserScan(ang[0], ang[-1], float(ang[1] - ang[0]), 0.0, 0.0, 0.05, 30.0, r,
-                     np.zeros(n))  # fmt: skip
 
 
 def test_pooled_is_the_window_max() -> None:

@@ -40,7 +40,7 @@ from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array
 from mmpa.localization.beam_model import (
     RAY_BLOCK,
-    beam_log_likelihood,
+    beam_pz,
     beam_weights,
     march,
     raycast,
@@ -335,7 +335,7 @@ class AMCL:
         args = (z, ranges, c.z_hit, c.z_short, c.z_rand, c.lambda_short, c.sigma_hit, zmax)
         if c.beam_form == "sum_of_cubes":
             return beam_weights(*args)
-        ll = beam_log_likelihood(*args)
+        ll = np.log(beam_pz(*args)).sum(axis=1)
         return np.exp(ll - ll.max())
 
     def measurement_weights(self, particles: Array, scan: LaserScan) -> Array:

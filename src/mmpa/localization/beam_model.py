@@ -2,8 +2,8 @@
 
 :func:`raycast` finds the expected range of every (particle, beam) by sphere tracing in the
 occupancy grid (:func:`skip_table`); :func:`beam_weights` turns expected and measured ranges
-into Nav2's ``p = 1 + sum_b pz_b^3``, :func:`beam_log_likelihood` into the textbook product's
-``log p = sum_b log pz_b``, with the mixture ``pz = z_hit exp(-z^2 / (2 sigma_hit^2)) +
+into Nav2's ``p = 1 + sum_b pz_b^3`` (:func:`beam_pz`: each beam's ``pz``, whose logs sum to
+the textbook product's ``log p``), with the mixture ``pz = z_hit exp(-z^2 / (2 sigma_hit^2)) +
 [z < 0] z_short lambda_short exp(-lambda_short r) + z_rand / z_max``, ``z = r - r_expected``.
 
 Units: m, rad. Particles ``[x, y, theta]`` in ``map``, the lidar mount ``[x, y, yaw]`` in
@@ -24,7 +24,6 @@ RAY_BLOCK = 32768  # rays marched together by raycast (their arrays fit the L2 c
 
 __all__ = [
     "RAY_BLOCK",
-    "beam_log_likelihood",
     "beam_pz",
     "beam_weights",
     "march",
@@ -150,23 +149,6 @@ def beam_weights(
     or past ``z_max`` are dropped before."""
     pz = beam_pz(expected, ranges, z_hit, z_short, z_rand, lambda_short, sigma_hit, zmax)
     return 1.0 + np.einsum("ij,ij,ij->i", pz, pz, pz)
-
-
-def beam_log_likelihood(
-    expected: Array,
-    ranges: Array,
-    z_hit: float,
-    z_short: float,
-    z_rand: float,
-    lambda_short: float,
-    sigma_hit: float,
-    zmax: float,
-) -> Array:
-    """The beam model as a likelihood (Thrun et al. Table 6.1: the beams' ``pz`` multiplied,
-    not Nav2's sum of cubes): ``log p = sum_b log pz_b`` (N,), ``pz`` as :func:`beam_weights`
-    (``expected`` overwritten)."""
-    pz = beam_pz(expected, ranges, z_hit, z_short, z_rand, lambda_short, sigma_hit, zmax)
-    return np.log(pz).sum(axis=1)
 
 
 def beam_pz(
