@@ -114,6 +114,9 @@ def test_hand_eye_on_hardware_refuses_a_board_it_does_not_see(board, hardware, t
     assert bad.exit_code == 2 and "7by5" in bad.output
 
 
+# slow (6-11 s: the suite budget); the default run keeps the question and the refusal here and
+# the hand-eye mission over the protocols (tests/test_protocols_only.py)
+@pytest.mark.slow
 def test_hand_eye_on_hardware_calibrates_without_truth(board, hardware, tmp_path):
     """--yes: 8 views planned from where the arm stands, visited, opencv's methods; the
     summary holds residuals only (no truth key); the hand-eye written to robot.yaml, which
@@ -203,6 +206,9 @@ def test_reflectors_on_hardware_asks_first_and_a_no_moves_nothing(drive_world, s
     assert bad.exit_code == 2 and "--initial-pose" in bad.output
 
 
+# slow (7-10 s: the suite budget); the default run keeps the question here and the survey
+# drive over the protocols (tests/test_protocols_only.py)
+@pytest.mark.slow
 def test_reflectors_on_hardware_surveys_without_truth(drive_world, survey_hw, tmp_path):
     """--yes: the drive from site 0 to site 1 (two stops, 10 scans each) over the devices
     alone; the summary has no truth; the written reflector map, compared here with the

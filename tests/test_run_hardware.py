@@ -179,6 +179,8 @@ def test_a_base_is_asked_before_it_drives_no_moves_nothing(site, tmp_path) -> No
         run_stored_task_on_robot(robot, ts.taught.task.name, db=db)
 
 
+# slow (7-10 s: the suite budget); the default run keeps the question before the drive
+@pytest.mark.slow
 def test_a_base_drives_to_the_park_pose_before_the_arm(site, tmp_path) -> None:
     """Confirmed: the base drives 0.25 m to the task's park pose on the localization
     estimate (the truth within 10 mm / 0.5 deg of it: the navigate mission's settle check
