@@ -25,8 +25,10 @@ class AMCLConfig(BaseModel):
     Defaults: Nav2's, but for four (issue 34: Nav2's defaults diverge on real buildings whose
     scans are 0.7-1 m apart; measurements in ``docs/localization.md`` "Real logs"):
     ``laser_model_type = likelihood_field_prob`` (a likelihood, not Nav2's sum of cubes),
-    ``sigma_hit = 0.1``, ``update_min_d`` / ``update_min_a`` 0.05 and ``scan_refine`` on.
-    :meth:`paper` is Nav2's defaults throughout.
+    ``sigma_hit = 0.1``, ``update_min_d`` / ``update_min_a`` 0.05 and ``scan_refine`` on;
+    and two for ``--global`` / the beam model: ``global_search`` on (a whole-map search of
+    the first scan seeds the cloud) and ``beam_form = "product"``. :meth:`paper` is Nav2's
+    defaults throughout.
     """
 
     model_config = ConfigDict(extra="forbid")
