@@ -3,9 +3,11 @@
 ``apps.teach_person.person_recorder``), over real DDS.
 
 Default (cheap, ~3 s): a driver in this process publishes ``/clock`` and ``/joint_states``
-at 50 Hz of a closed-form motion in real time; a scripted button presses at two clock times:
-the recorded samples are the published ones between the presses, to the sample (stamps,
-joints), every one at 50 Hz and every other at 25 Hz. The end to end (``mmpa --robot
+at 50 Hz of a closed-form motion in real time (in bursts when this process was not run for a
+while, as on a loaded machine); a scripted button presses at a clock time and 1 s of the
+clock after that press was seen: the recorded samples are every published message stamped
+between the presses as the recorder saw them, to the sample (stamps, joints), every one at
+50 Hz and every other at 25 Hz. The end to end (``mmpa --robot
 ros2.yaml teach`` against the twin node, the twin operator's motion played into its arm) is
 slow: tests/test_ros2_robot.py.
 
@@ -43,13 +45,16 @@ def motion(t: float) -> np.ndarray:
 
 
 class Driver:
-    """``/joint_states`` then ``/clock`` every 20 ms of sim time, paced in real time; what
-    was published, by stamp (ns)."""
+    """``/clock`` then ``/joint_states`` every 20 ms of sim time, paced in real time; the
+    joints' stamps ``lag`` ticks behind the clock (ahead when negative: the two topics'
+    delivery latencies differ; changed between recordings); what was published, by stamp
+    (ns)."""
 
-    def __init__(self, s: graph.Session) -> None:
+    def __init__(self, s: graph.Session, lag: int = 0) -> None:
         mc = messages.message_class
         self.js = s.node.create_publisher(mc("sensor_msgs/msg/JointState"), "/joint_states", 50)
         self.clock = s.node.create_publisher(mc("rosgraph_msgs/msg/Clock"), "/clock", 50)
+        self.lag = lag
         self.sent: dict[int, np.ndarray] = {}
         self._done = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -59,13 +64,15 @@ class Driver:
         k, wall0 = 0, time.monotonic()
         clock = messages.message_class("rosgraph_msgs/msg/Clock")()
         while not self._done.is_set():
-            t = 1.0 + k * TICK
-            q = motion(t)
-            msg = messages.to_rclpy(bag.joint_state(t, list(TWIN_JOINTS), q))
-            self.sent[msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec] = q
-            self.js.publish(msg)
-            clock.clock = msg.header.stamp
+            sec, ns = divmod(round((1.0 + k * TICK) * 1e9), 1_000_000_000)
+            clock.clock.sec, clock.clock.nanosec = sec, ns
             self.clock.publish(clock)
+            if k >= self.lag:
+                t = 1.0 + (k - self.lag) * TICK
+                q = motion(t)
+                msg = messages.to_rclpy(bag.joint_state(t, list(TWIN_JOINTS), q))
+                self.sent[msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec] = q
+                self.js.publish(msg)
             k += 1
             time.sleep(max(0.0, wall0 + k * TICK - time.monotonic()))
 
@@ -75,14 +82,18 @@ class Driver:
 
 
 class Presses:
-    """A button pressed when the robot's clock passes each of ``times`` (once each)."""
+    """A button pressed when the robot's clock passes ``first``, then ``gap`` s of the clock
+    after that press was seen; ``seen``: the clock when each press was returned."""
 
-    def __init__(self, robot: object, times: list[float]) -> None:
-        self.robot, self.times = robot, list(times)
+    def __init__(self, robot: object, first: float, gap: float) -> None:
+        self.robot, self.at, self.gap = robot, first, gap
+        self.seen: list[float] = []
 
     def __call__(self) -> bool:
-        if self.times and self.robot.time >= self.times[0]:  # type: ignore[attr-defined]
-            self.times.pop(0)
+        now = self.robot.time  # type: ignore[attr-defined]
+        if len(self.seen) < 2 and now >= self.at:
+            self.seen.append(now)
+            self.at = now + self.gap
             return True
         return False
 
@@ -93,10 +104,13 @@ def _localhost(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 
 
+#: the topics the recording does not use, off
+OFF = {"pose": "", "arm_trajectory": "", "arm_stream": ""}
+
+
 def _robot_and_driver(tag: str):
     dom = domain(tag)
-    topics = {"pose": "", "arm_trajectory": "", "arm_stream": ""}
-    cfg = backend(dom, connect_timeout_s=20.0, topics=topics)
+    cfg = backend(dom, connect_timeout_s=20.0, topics=OFF)
     os.environ["ROS_DOMAIN_ID"] = str(dom)
     try:
         peer = graph.Session(f"mmpa_test_{tag}_driver")
@@ -106,46 +120,68 @@ def _robot_and_driver(tag: str):
 
 
 def test_demonstration_on_joint_states_is_recorded_to_the_sample() -> None:
-    """Presses 1 s of the robot's clock apart, at 50 Hz then 25 Hz: the kept samples are
-    consecutive published messages (every one, every other), their times the stamps'
-    differences (1e-12 s), their joints the published ones exactly; the window 1 s within
-    the polls (a 20 ms poll and a tick at each end; 0.1 s allowed for a loaded machine)."""
+    """Presses 1 s of the robot's clock apart (the second 1 s after the first was seen), at
+    50 Hz with the joints 3 ticks behind the clock, then 25 Hz with them 3 ticks ahead: the
+    kept samples are every published message stamped in the recorder's press window
+    ``(t_on, t_off]`` (every one, every other), none missing or extra at either end whatever
+    the joints' latency (deciding by the message current at a press missed 3 at one end and
+    took 3 beyond the other); their times the stamps' differences (1e-12 s),
+    their joints the published ones exactly. The recorder reads the clock just before the
+    button does: ``t_on``, ``t_off`` at or before the button's own reads, which are >= 1 s
+    apart."""
     cfg, peer, driver = _robot_and_driver("teach")
     try:
         with ros2_robot(cfg, default_robot(), name="mmpa_test_teach") as robot:
             robot.connect(["clock", "arm"])
-            for rate, every in ((50.0, 1), (25.0, 2)):
-                t0 = robot.time
-                t, q, g, f = person_recorder(robot, rate, Presses(robot, [t0 + 0.3, t0 + 1.3]))()
+            for rate, every, lag in ((50.0, 1, 3), (25.0, 2, -3)):
+                driver.lag = lag
+                presses = Presses(robot, robot.time + 0.3, 1.0)
+                t, q, g, f = person_recorder(robot, rate, presses)()
                 assert f == rate and len(t) == len(q) and np.all(g == 0.0)
-                stamps = sorted(driver.sent)
-                k0 = next(k for k, s in enumerate(stamps) if np.array_equal(driver.sent[s], q[0]))
-                kept = np.array(stamps[k0::every][: len(t)])
-                assert len(kept) == len(t)
+                t_on, t_off = robot.arm.presses  # type: ignore[union-attr]
+                on, off = presses.seen
+                assert t_on <= on and t_off <= off and off >= on + 1.0, (t_on, t_off, on, off)
+                ns_on, ns_off = round(t_on * 1e9), round(t_off * 1e9)
+                window = [s for s in sorted(driver.sent) if ns_on < s <= ns_off]
+                kept = np.array(window[::every])
+                assert len(kept) == len(t) and len(t) >= 2, (len(kept), len(t))
                 np.testing.assert_allclose(t, (kept - kept[0]) * 1e-9, rtol=0, atol=1e-12)
                 for s, qk in zip(kept, q, strict=True):
                     np.testing.assert_array_equal(qk, driver.sent[int(s)])
                 np.testing.assert_allclose(np.diff(t), every * TICK, rtol=0, atol=1e-9)
-                assert 1.0 - 0.1 <= t[-1] <= 1.0 + 0.1, t[-1]
-                print(f"{rate:g} Hz: {len(t)} samples over {t[-1]:.3f} s")
+                assert t_off - t_on > 0.5, (t_on, t_off)  # not both presses at one poll
+                print(
+                    f"{rate:g} Hz: {len(t)} samples over {t[-1]:.3f} s; presses seen "
+                    f"{t_on:.3f} / {t_off:.3f} s, the button's reads "
+                    f"{on - t_on:.3f} / {off - t_off:.3f} s later"
+                )
     finally:
         driver.close()
         peer.close()
 
 
 def test_presses_without_samples_between_them_are_refused() -> None:
-    """Both presses at once (the second seen at the next poll, before a new message can
-    come after the first): fewer than two samples, an error naming the cause; a button
-    never pressed: the demonstration did not start within max_seconds."""
+    """A button never pressed: the demonstration did not start within max_seconds; stamps
+    in another time base than the robot's (the driver's sim-time stamps, the robot on the
+    wall clock): refused, naming the clocks; both presses at once (the driver stopped: no
+    message after the first press): fewer than two samples, an error naming the cause."""
     cfg, peer, driver = _robot_and_driver("teach_bad")
+    wall = backend(domain("teach_bad"), use_sim_time=False, connect_timeout_s=20.0, topics=OFF)
     try:
-        with ros2_robot(cfg, default_robot(), name="mmpa_test_teach_bad") as robot:
+        with (
+            ros2_robot(cfg, default_robot(), name="mmpa_test_teach_bad") as robot,
+            ros2_robot(wall, default_robot(), name="mmpa_test_teach_wall") as on_wall,
+        ):
             robot.connect(["clock", "arm"])
+            on_wall.connect(["arm"])
             arm = robot.arm
-            with pytest.raises(MMPAError, match="between the presses"):
-                arm.record_joint_states(50.0, lambda: True)  # type: ignore[union-attr]
             with pytest.raises(MMPAError, match=r"did not start within 0\.2 s"):
                 arm.record_joint_states(50.0, lambda: False, max_seconds=0.2)  # type: ignore[union-attr]
+            with pytest.raises(MMPAError, match="synchronize the driver's clock"):
+                on_wall.arm.record_joint_states(50.0, lambda: True)  # type: ignore[union-attr]
+            driver.close()
+            with pytest.raises(MMPAError, match=r"0 /joint_states sample\(s\) stamped between"):
+                arm.record_joint_states(50.0, lambda: True)  # type: ignore[union-attr]
     finally:
         driver.close()
         peer.close()

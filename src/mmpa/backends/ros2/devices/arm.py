@@ -26,8 +26,9 @@
   publishes each set-point as ``std_msgs/Float64MultiArray`` on ``topics.arm_stream`` (a
   ros2_control forward position controller applies it as it is);
 - ``record_joint_states(rate_hz, button)``: a person's demonstration (the arm guided by
-  hand or jogged on the teach pendant) as ``/joint_states`` showed it: every message
-  between two presses of a button, kept at ``rate_hz``, times from their stamps;
+  hand or jogged on the teach pendant) as ``/joint_states`` showed it: every message stamped
+  between two presses of a button (the robot's time when each press was seen), kept at
+  ``rate_hz``, times from their stamps, whatever the messages' delivery latency;
 - watchdog: ``/joint_states`` silent for ``safety.watchdog_s`` wall s stops the stream and
   fails any motion or command with a message naming the topic; ``stopped()`` says so.
 
@@ -58,7 +59,7 @@ from mmpa.backends.ros2.messages import message_class
 from mmpa.core.errors import InvalidInputError, MMPAError
 from mmpa.core.geometry import Array
 from mmpa.robot.backend_config import Ros2Topics, SafetyConfig
-from mmpa.robot.interfaces import Clock
+from mmpa.robot.interfaces import Clock, WallClock
 from mmpa.robot.limits import (
     JointLimits,
     StreamLimitsSwitch,
@@ -134,6 +135,23 @@ def _joint_reader(names: tuple[str, ...]) -> Any:
     return read
 
 
+def _between(msgs: list[Any], t_on: float, t_off: float, dt: float) -> list[Any]:
+    """The ``(stamp, q)`` of ``msgs`` stamped in ``(t_on, t_off]``, in stamp order, each
+    object once, thinned: one is kept when its stamp is at least ``0.75 dt`` after the last
+    kept one."""
+    seen: set[int] = set()
+    window = []
+    for m in msgs:
+        if id(m) not in seen and t_on < m[0] <= t_off:
+            seen.add(id(m))
+            window.append(m)
+    kept: list[Any] = []
+    for m in sorted(window, key=lambda m: m[0]):
+        if not kept or m[0] - kept[-1][0] >= dt * 0.75:
+            kept.append(m)
+    return kept
+
+
 def _last_poll(polls: list[tuple[float, float]], stamp: float) -> float:
     """The value of the last poll ``(stamp, value)`` at or before ``stamp`` (the first
     one before them all)."""
@@ -172,7 +190,7 @@ class Ros2Arm(StreamLimitsSwitch):
         self.watchdog_s = float(safety.watchdog_s)
         self.joints = node.subscribe(
             "arm", topics.joint_states, "sensor_msgs/msg/JointState", JOINT_STATES_QOS,
-            convert=_joint_reader(self.names),
+            keep=JOINT_STATES_QOS.depth, convert=_joint_reader(self.names),
         )  # fmt: skip
         traj, stream = topics.arm_trajectory, topics.arm_stream
         T = "trajectory_msgs/msg/JointTrajectory"
@@ -188,6 +206,8 @@ class Ros2Arm(StreamLimitsSwitch):
         self.stream_error: Exception | None = None
         #: what was published, newest last: ``(kind, t, q)``, kind "trajectory" or "stream"
         self.sent: deque[tuple[str, Array, Array]] = deque(maxlen=10_000)
+        #: the last recording's presses ``(t_on, t_off)``, s in the stamps' time base
+        self.presses: tuple[float, float] | None = None
 
     # ------------------------------------------------------------------ state
     def joint_positions(self) -> Array:
@@ -334,39 +354,62 @@ class Ros2Arm(StreamLimitsSwitch):
         """A person's demonstration seen on ``/joint_states`` (module docstring).
 
         ``button`` (True once per press) is polled every ``1 / rate_hz`` s of the robot's
-        clock. Kept: the messages stamped after the one current at the first press, up to
-        and including the one current at the second press, thinned to ``rate_hz`` (a message
-        is kept when its stamp is at least ``1 / rate_hz`` minus a quarter period after the
-        last kept one: every message when the arm publishes at ``rate_hz`` or slower).
-        Returns ``t`` (N,) s from the first kept stamp, ``q`` (N, 6) rad, and the gripper
-        state (N,) in [0, 1] polled from ``gripper`` (0 without) at the last poll before each
-        sample's arrival. Over ``max_seconds`` of the robot's clock: :class:`MMPAError`; the
-        watchdog as every motion's."""
+        clock; a press's time ``t_on`` / ``t_off`` is :meth:`stamp_time` when it is seen
+        (:attr:`presses`). Kept: every message stamped in ``(t_on, t_off]`` (decided by the
+        stamps, not by arrival: the last ``JOINT_STATES_QOS.depth`` messages before the first
+        press count too, and after the second the recording waits up to
+        ``safety.watchdog_s`` wall s for a message stamped at or after ``t_off``), thinned to
+        ``rate_hz`` (kept when its stamp is at least ``1 / rate_hz`` minus a quarter period
+        after the last kept one: every message when the arm publishes at ``rate_hz`` or
+        slower). Returns ``t`` (N,) s from the first kept stamp, ``q`` (N, 6) rad, and the
+        gripper state (N,) in [0, 1] polled from ``gripper`` (0 without) at the last poll at
+        or before each sample's stamp. Over ``max_seconds`` of the robot's clock:
+        :class:`MMPAError`; the watchdog as every motion's."""
         if not (np.isfinite(rate_hz) and rate_hz > 0):
             raise InvalidInputError(f"rate_hz must be a positive rate, got {rate_hz}")
         dt = 1.0 / float(rate_hz)
         self.stop_stream()
-        self._wait_press(button, dt, max_seconds, "start")
+        _, t_on = self._wait_press(button, dt, max_seconds, "start")
         J = self.joints
-        kept = J.tap()
+        tapped = J.tap()
         try:
-            t_on = float(J.msg[0])
-            polls = self._wait_press(button, dt, max_seconds, "end", gripper)
-            t_off = float(J.msg[0])
+            before = [m for _, m in J.snapshot()]  # arrived before the tap: stamped later?
+            self._check_time_base(t_on, float(J.msg[0]))
+            polls, t_off = self._wait_press(button, dt, max_seconds, "end", gripper)
+            J.wait(lambda: J.msg[0] >= t_off, self.watchdog_s)  # the last one on its way
+            self._watch()
         finally:
-            J.untap(kept)
-        t, q, g = [], [], []
-        for stamp, qk in kept:
-            if t_on < stamp <= t_off and (not t or stamp - t[-1] >= dt * 0.75):
-                t.append(float(stamp))
-                q.append(np.asarray(qk, float).copy())
-                g.append(_last_poll(polls, stamp))
-        if len(t) < 2:
+            J.untap(tapped)
+        self.presses = (t_on, t_off)
+        kept = _between(before + tapped, t_on, t_off, dt)
+        if len(kept) < 2:
             raise MMPAError(
-                f"arm: {len(t)} /joint_states sample(s) between the presses: press, guide "
-                "the arm, press again (is the driver publishing?)"
+                f"arm: {len(kept)} /joint_states sample(s) stamped between the presses "
+                f"({t_on:.3f} s, {t_off:.3f} s; the latest message is stamped "
+                f"{float(J.msg[0]):.3f} s): press, guide the arm, press again (is the driver "
+                "publishing, are its clock and this computer's synchronized?)"
             )
-        return np.array(t) - t[0], np.array(q), np.array(g)
+        t = np.array([m[0] for m in kept])
+        q = np.array([np.asarray(m[1], float) for m in kept])
+        g = np.array([_last_poll(polls, stamp) for stamp in t])
+        return t - t[0], q, g
+
+    def _check_time_base(self, now: float, stamp: float) -> None:
+        """Refuse stamps more than ``safety.watchdog_s`` from :meth:`stamp_time` (another
+        time base: unsynchronized clocks, a simulator's stamps without ``use_sim_time``)."""
+        if abs(now - stamp) > self.watchdog_s:
+            raise MMPAError(
+                f"arm: the latest /joint_states is stamped {stamp:.3f} s, {now - stamp:+.3f} s "
+                f"from the robot's time {now:.3f} s (over the watchdog's {self.watchdog_s:g} "
+                "s): synchronize the driver's clock with this computer's, or set "
+                "backend.ros2.use_sim_time for a simulator's /clock"
+            )
+
+    def stamp_time(self) -> float:
+        """Now in the time base of the messages' stamps (s): the robot's clock when it is
+        ``/clock`` (a simulator, a bag), else ROS time (the system clock, as a driver stamps
+        with it: its computer and this one synchronized)."""
+        return time.time() if isinstance(self._clock, WallClock) else self._clock.time
 
     def _wait_press(
         self,
@@ -375,16 +418,18 @@ class Ros2Arm(StreamLimitsSwitch):
         max_seconds: float,
         what: str,
         gripper: Callable[[], float] | None = None,
-    ) -> list[tuple[float, float]]:
-        """Poll ``button`` every ``dt`` s of the robot's clock until it is pressed; the
-        gripper polls ``(joint stamp, state)`` on the way."""
+    ) -> tuple[list[tuple[float, float]], float]:
+        """Poll ``button`` every ``dt`` s of the robot's clock until it is pressed: the
+        gripper's polls ``(stamp time, state)`` on the way, and the press's stamp time (read
+        just before the button: at or before the press was seen)."""
         start = self._clock.time
         polls: list[tuple[float, float]] = []
         while True:
             self.joint_positions()  # the first message waited for, the watchdog checked
-            polls.append((float(self.joints.msg[0]), 0.0 if gripper is None else gripper()))
+            now = self.stamp_time()
+            polls.append((now, 0.0 if gripper is None else gripper()))
             if button():
-                return polls
+                return polls, now
             if self._clock.time - start > max_seconds:
                 raise MMPAError(f"arm: the demonstration did not {what} within {max_seconds:g} s")
             self._clock.step(dt)
