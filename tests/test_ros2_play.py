@@ -126,6 +126,7 @@ def test_play_publishes_the_stored_bytes_with_the_recorded_qos(
     assert clock == sorted(clock) and len(clock) >= N_SCANS, clock
     assert clock[0] >= round(T0 * 1e9) and clock[-1] == LAST
     assert f"played {sum(map(len, want.values()))} messages" in text
+    assert "not acknowledged" not in text, text
 
 
 def test_play_refuses_a_missing_bag_and_unknown_topics(tmp_path: Path, carmen_bag: Path) -> None:
