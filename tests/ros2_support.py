@@ -21,10 +21,27 @@ from typing import Any
 MMPA = [sys.executable, "-c", "from mmpa.cli.main import main; main()"]
 
 
+#: the ``ROS_DOMAIN_ID`` s Fast DDS can use on Linux (its ports: 0..101 and 215..232; 0 left to
+#: the user's own ROS system)
+SAFE_DOMAINS = (*range(1, 102), *range(215, 233))
+#: pytest-xdist workers the suite runs at most (Makefile: ``--maxprocesses 4``)
+WORKERS = 4
+
+
+def domain_number(key: str) -> int:
+    """A ``ROS_DOMAIN_ID`` for ``key`` in this process. Each pytest-xdist worker draws from
+    its own share of :data:`SAFE_DOMAINS` (every ``WORKERS``-th id), so tests running at the
+    same time in different workers never share a domain; within a worker (tests run one
+    after another) ``key`` and the process id spread them."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    n = int(worker[2:]) if worker[2:].isdigit() else 0
+    share = SAFE_DOMAINS[n % WORKERS :: WORKERS]
+    return share[zlib.crc32(f"{os.getpid()}:{key}".encode()) % len(share)]
+
+
 def domain_id(key: str) -> str:
-    """A ``ROS_DOMAIN_ID`` in 1..100 from ``key`` and this pytest worker and process."""
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw-")
-    return str(1 + zlib.crc32(f"{worker}:{os.getpid()}:{key}".encode()) % 100)
+    """:func:`domain_number` as the environment variable's text."""
+    return str(domain_number(key))
 
 
 @contextmanager

@@ -13,6 +13,8 @@ import pytest
 
 pytest.importorskip("pyrealsense2", reason="the optional extra 'realsense'")
 
+from tests.ros2_support import domain_number
+
 from mmpa.backends import direct
 from mmpa.backends.realsense import RealSenseCamera, record_frames
 from mmpa.backends.ur import URArm
@@ -104,8 +106,6 @@ def test_a_base_over_ros2_beside_the_rtde_arm(monkeypatch) -> None:
     from a peer playing the base's driver, the arm over RTDE (the fake) in the same robot;
     the ROS 2 arm, camera and gripper topics are not read (no ``/joint_states`` needed)."""
     pytest.importorskip("rclpy", reason="the ros2 extra is not installed")
-    import os
-    import zlib
 
     from mmpa.backends.bag import messages as bag
     from mmpa.backends.ros2 import graph, messages
@@ -114,7 +114,7 @@ def test_a_base_over_ros2_beside_the_rtde_arm(monkeypatch) -> None:
     from mmpa.robot.interfaces import Odometry
 
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    dom = 215 + zlib.crc32(f"direct-base:{os.getpid()}".encode()) % 18
+    dom = domain_number("direct-base")
     fake = FakeRTDE(HOME)
     monkeypatch.setattr(direct, "connect_rtde", lambda host, f: (fake, fake))
     ros2 = Ros2Backend(domain_id=dom, connect_timeout_s=20.0, topics={"scan": "", "pose": ""})

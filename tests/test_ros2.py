@@ -14,7 +14,6 @@ import os
 import selectors
 import subprocess
 import sys
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ pytest.importorskip(
 )
 
 from rclpy.serialization import deserialize_message, serialize_message
+from tests.ros2_support import domain_id
 
 from mmpa.backends.bag import messages as bag
 from mmpa.backends.ros2 import messages
@@ -106,7 +106,7 @@ def _env(tmp_path: Path, request: pytest.FixtureRequest) -> dict[str, str]:
     key = f"{worker}:{os.getpid()}:{request.node.nodeid}".encode()
     env = dict(os.environ)
     env |= {
-        "ROS_DOMAIN_ID": str(1 + zlib.crc32(key) % 100),
+        "ROS_DOMAIN_ID": domain_id(key.decode()),
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
         "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
         "ROS_LOG_DIR": str(tmp_path / "ros_log"),

@@ -18,7 +18,6 @@ import subprocess
 import sys
 import threading
 import time
-import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -28,6 +27,8 @@ import pytest
 pytest.importorskip(
     "rclpy", reason="the ros2 extra is not installed (make setup installs it on x86-64 Linux)"
 )
+
+from tests.ros2_support import domain_number
 
 from mmpa.backends.bag import messages as bag
 from mmpa.backends.ros2 import graph, messages
@@ -48,9 +49,9 @@ TWIN_JOINTS = tuple(f"joint{i}" for i in range(1, 7))
 
 
 def domain(tag: str) -> int:
-    """A DDS domain for this process and ``tag`` in 215..232 (Linux's other safe range)."""
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw-")
-    return 215 + zlib.crc32(f"{worker}:{os.getpid()}:{tag}".encode()) % 18
+    """A DDS domain for this process and ``tag`` (tests.ros2_support.domain_number: never
+    one a test in another pytest worker uses at the same time)."""
+    return domain_number(tag)
 
 
 def backend(dom: int, use_sim_time: bool = True, **ros2: object) -> BackendConfig:

@@ -19,7 +19,6 @@ import os
 import signal
 import subprocess
 import sys
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +27,8 @@ import pytest
 pytest.importorskip(
     "rclpy", reason="the ros2 extra is not installed (make setup installs it on x86-64 Linux)"
 )
+
+from tests.ros2_support import domain_id
 
 from mmpa.backends.bag import messages as bag
 from mmpa.backends.ros2 import graph, localization_msgs, messages
@@ -89,7 +90,7 @@ def _scan(grid: OccupancyGrid, k: int, rng: np.random.Generator) -> LaserScan:
 def _env(tmp_path: Path, request: pytest.FixtureRequest) -> None:
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw-")
     key = f"{worker}:{os.getpid()}:{request.node.nodeid}".encode()
-    os.environ["ROS_DOMAIN_ID"] = str(1 + zlib.crc32(key) % 100)
+    os.environ["ROS_DOMAIN_ID"] = domain_id(key.decode())
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     os.environ["RMW_IMPLEMENTATION"] = "rmw_fastrtps_cpp"
     os.environ["ROS_LOG_DIR"] = str(tmp_path / "ros_log")

@@ -12,7 +12,6 @@ import os
 import subprocess
 import sys
 import time
-import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -23,6 +22,8 @@ import pytest
 pytest.importorskip(
     "rclpy", reason="the ros2 extra is not installed (make setup installs it on x86-64 Linux)"
 )
+
+from tests.ros2_support import domain_id
 
 from mmpa.backends.bag import messages as bag
 from mmpa.backends.ros2 import graph, messages
@@ -112,8 +113,7 @@ class Peer:
 
 
 def _domain() -> str:
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw-")
-    return str(1 + zlib.crc32(f"{worker}:{os.getpid()}:twin".encode()) % 100)
+    return domain_id("twin")
 
 
 @pytest.fixture(scope="module")
