@@ -194,6 +194,9 @@ class InterruptError(Exception):
     pass
 
 
+# slow (25 s: the suite budget); the default run keeps the journal's resume
+# (test_resume_skips_journaled_trials_and_ignores_a_torn_last_line) and two workers' rows
+@pytest.mark.slow
 def test_an_interrupted_run_resumed_gives_the_rows_of_a_whole_one(serial_run, tmp_path):
     from mmpa.harness.runner import run_experiment
 

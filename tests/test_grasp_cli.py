@@ -26,6 +26,9 @@ from mmpa.robot.robot_file import robot_to_yaml
 from mmpa.servo.grasp import look_configuration
 
 
+# slow (7-17 s: the suite budget); the default run keeps mmpa grasp over the twin's devices as a
+# hardware robot (below) and the grasp trials in tests/test_servo_twin.py
+@pytest.mark.slow
 def test_grasp_in_the_twin_is_the_experiments_trial_and_judged_by_the_truth(tmp_path) -> None:
     """``mmpa grasp cube`` at its defaults: held in the physics, the gripper closed within
     15 mm (horizontal) of the cube's true center (the tracking grasp's static close error:

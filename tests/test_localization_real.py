@@ -37,7 +37,10 @@ def _errors(ds: CarmenDataset, **kw) -> np.ndarray:
     return pos
 
 
-@pytest.mark.parametrize(("log", "limit"), [("intel", 0.06), ("csail", 0.05)])
+# intel slow (7-11 s: the suite budget; its 1 m / 30 deg start below stays in the default run)
+@pytest.mark.parametrize(
+    ("log", "limit"), [pytest.param("intel", 0.06, marks=pytest.mark.slow), ("csail", 0.05)]
+)
 def test_defaults_track_a_real_building_from_the_true_pose(request, log: str, limit: float):
     """The first 100 scans (0.7-1 m, 10-20 deg apart): median error measured 31 mm (intel)
     and 18 mm (csail), max 195 / 161 mm; Nav2's defaults are lost by scan 30 (12-22 m)."""
@@ -55,7 +58,12 @@ def test_defaults_converge_from_1_m_and_30_deg_off(intel):
     assert np.median(pos[10:]) < 0.08
 
 
-@pytest.mark.parametrize(("log", "model"), [("intel", "likelihood_field_prob"), ("csail", "beam")])
+# intel slow (7 s: the suite budget; the likelihood field's global start stays in the default run
+# on the synthetic and twin maps, tests/test_global_localization.py)
+@pytest.mark.parametrize(
+    ("log", "model"),
+    [pytest.param("intel", "likelihood_field_prob", marks=pytest.mark.slow), ("csail", "beam")],
+)
 def test_global_start_converges_at_the_defaults(request, log: str, model: str):
     """``--global`` at the defaults (the whole-map search of the first scan seeds the
     cloud), the first 30 scans, with each laser model: measured 60 mm (intel) and 36 mm
