@@ -163,6 +163,9 @@ def test_an_acceleration_limited_descent_stops_on_a_turn(world):
     assert gap > 0.1, gap
 
 
+# slow (11 s: the suite budget); the default run keeps per-trial seeding of a real experiment
+# (tests/test_executor.py: two workers give the rows of one)
+@pytest.mark.slow
 def test_a_grasp_cell_run_alone_repeats_its_trials_in_the_full_table(tmp_path):
     """Every trial draws its scene and sensor noise from its own seed (``set_episode``): the
     tennis ball's trial is the same, to the float, whether the cube's trial ran before it in
