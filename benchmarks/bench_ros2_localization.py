@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests.* (its test module imports)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import test_ros2_localization as seq
