@@ -44,6 +44,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mmpa.core.errors import InvalidInputError, MMPAError
 from mmpa.core.geometry import Array
+from mmpa.robot.command_stream import CommandStream
 from mmpa.robot.limits import (
     JointLimits,
     StreamLimitsSwitch,
@@ -124,7 +125,7 @@ class _Watchdog:
             )
 
 
-class URArm(StreamLimitsSwitch):
+class URArm(StreamLimitsSwitch, CommandStream):
     """A UR arm over RTDE as an mmpa ``Arm`` (module docstring)."""
 
     def __init__(
@@ -151,10 +152,7 @@ class URArm(StreamLimitsSwitch):
         self._control, self._receive = control, receive
         self.receive = receive  # the digital inputs of the controller (DigitalInputButton)
         self._dt = 1.0 / cfg.frequency
-        self._lock = threading.Lock()
-        self._target: Array | None = None
-        self._stream: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._init_stream()
         self.stream_error: Exception | None = None
         #: the limits of the streamed set-points (``command``): ``limits`` times the speed
         #: scale (velocity and acceleration)
@@ -353,15 +351,6 @@ class URArm(StreamLimitsSwitch):
             _log.error("UR command stream stopped: %s", e)
         finally:
             c.servoStop(self.cfg.stop_deceleration)
-
-    def stop_stream(self) -> None:
-        """End a ``command`` stream (the arm decelerates to rest)."""
-        if self._stream is not None:
-            self._stop.set()
-            self._stream.join()
-            self._stream = None
-            with self._lock:
-                self._target = None
 
     def stop(self) -> None:
         """Stop any motion now (``stopJ``)."""

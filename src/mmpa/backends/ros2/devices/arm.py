@@ -59,6 +59,7 @@ from mmpa.backends.ros2.messages import message_class
 from mmpa.core.errors import InvalidInputError, MMPAError
 from mmpa.core.geometry import Array
 from mmpa.robot.backend_config import Ros2Topics, SafetyConfig
+from mmpa.robot.command_stream import CommandStream
 from mmpa.robot.interfaces import Clock, WallClock
 from mmpa.robot.limits import (
     JointLimits,
@@ -164,7 +165,7 @@ def _duration(msg: Any, t: float) -> None:
     msg.sec, msg.nanosec = divmod(ns, 1_000_000_000)
 
 
-class Ros2Arm(StreamLimitsSwitch):
+class Ros2Arm(StreamLimitsSwitch, CommandStream):
     """The arm of a ROS 2 robot (module docstring). ``limits``: the arm's joint limits
     (checked before sending); ``clock``: the robot's clock; ``timeout``: wall s to wait for
     the first ``/joint_states`` and for the controllers' subscriptions."""
@@ -199,10 +200,7 @@ class Ros2Arm(StreamLimitsSwitch):
             node.publisher(stream, "std_msgs/msg/Float64MultiArray") if stream else None
         )
         self._matched: set[str] = set()
-        self._lock = threading.Lock()
-        self._target: Array | None = None
-        self._stream: threading.Thread | None = None
-        self._stop = threading.Event()
+        self._init_stream()
         self.stream_error: Exception | None = None
         #: what was published, newest last: ``(kind, t, q)``, kind "trajectory" or "stream"
         self.sent: deque[tuple[str, Array, Array]] = deque(maxlen=10_000)
@@ -473,15 +471,6 @@ class Ros2Arm(StreamLimitsSwitch):
         except MMPAError as e:  # reported at the next command
             self.stream_error = e
             self._node.node.get_logger().error(f"arm command stream stopped: {e}")
-
-    def stop_stream(self) -> None:
-        """End a ``command`` stream (the controller holds the last set-point)."""
-        if self._stream is not None:
-            self._stop.set()
-            self._stream.join()
-            self._stream = None
-            with self._lock:
-                self._target = None
 
     def stop(self) -> None:
         self.stop_stream()
