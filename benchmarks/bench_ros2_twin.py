@@ -9,7 +9,8 @@ shared 2-core machine the wall clock counts other people's work too, the CPU tim
 With the camera it also reports the cost of one frame (``SimCamera.capture``: render and
 noise) in CPU ms (the process's, all threads, while it runs) and wall ms.
 A subscriber process (``--subscribe``) takes the scan, /odom, /tf and the images
-over DDS as a localization node would (so DDS serializes and sends them).
+over DDS as a localization node would (so DDS serializes and sends them); the camera run
+always has it (the node renders its images only for a subscriber).
 
     MUJOCO_GL=osmesa PYOPENGL_PLATFORM=osmesa OMP_NUM_THREADS=1 \\
         .venv/bin/python benchmarks/bench_ros2_twin.py [--seconds 10] [--profile realistic]
@@ -64,7 +65,7 @@ def run(seconds: float, profile: str, camera: bool, rate: float, subscribe: bool
 
     cfg = twin_node_config("0", profile, 0, camera=camera, camera_rate_hz=rate, speed=0.0)
     sub = None
-    if subscribe:
+    if subscribe or camera:  # the node renders its images only for a subscriber
         sub = subprocess.Popen(
             [sys.executable, "-c", SUBSCRIBER, "600"], stdout=subprocess.PIPE, text=True
         )

@@ -14,8 +14,9 @@ camera at the work area, press Enter, jog or guide the arm (``/joint_states`` is
 press Enter; then the base drives to where it stood (localized) and the task repeats after
 a question.
 
-``--fake`` (what CI runs, slow): the robot is the twin node (``mmpa ros2 twin --site 1
---camera``, started here on a DDS domain of its own) and the person's demonstration a bag of
+``--fake`` (what CI runs): the robot is the twin node (``mmpa ros2 twin --site 1 --camera
+--speed 3``: three sim seconds per wall second where the CPU allows; started here on a DDS
+domain of its own) and the person's demonstration a bag of
 ``/joint_states`` (joint 1 turned 0.1 rad and back): over real DDS, nothing here is hardware.
 """
 
@@ -56,7 +57,8 @@ def _fake(folder: Path) -> tuple[Path, str, Path, dict, object]:
     dom = 215 + os.getpid() % 18
     os.environ |= {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": str(dom)}
     cmd = [sys.executable, "-c", "from mmpa.cli.main import main; main()", "ros2", "twin"]
-    node = subprocess.Popen([*cmd, "--site", "1", "--camera"], stdout=subprocess.DEVNULL)
+    twin = ["--site", "1", "--camera", "--speed", "3"]
+    node = subprocess.Popen([*cmd, *twin], stdout=subprocess.DEVNULL)
     names = [f"joint{i}" for i in range(1, 7)]  # the twin's joint names
     ros2 = {"joint_names": names, "use_sim_time": True, "domain_id": dom, "topics": {"pose": ""}}
     doc = {"backend": {"kind": "ros2", "ros2": {**ros2, "connect_timeout_s": 60.0}}}

@@ -200,6 +200,18 @@ def test_camera_sees_the_floor_where_the_truth_says(twin: tuple[Ros2Robot, Path]
     floor = (frame.depth > 0) & (diff < 0.05)
     assert floor.mean() > 0.95
     assert np.percentile(diff[floor], 95) < 0.002
+    # the images are unsubscribed once the camera is idle, and no more of them arrive (the
+    # twin node renders for a subscriber only); camera_info keeps coming
+    from mmpa.backends.ros2.devices.camera import IDLE_S
+
+    color, info = robot.camera.color, robot.camera.info
+    deadline = time.monotonic() + IDLE_S + 5.0
+    while color.subscription is not None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert color.subscription is None
+    n_color, n_info = color.count, info.count
+    assert info.wait(lambda: info.count > n_info + 3, 30.0)
+    assert color.count == n_color
 
 
 def _tcp_truth(robot: Ros2Robot, T_map_base: np.ndarray) -> np.ndarray:

@@ -1,18 +1,20 @@
 """The digital twin as a ROS 2 robot (``mmpa ros2 twin``; docs/ros2.md "The twin as a ROS 2
 robot"), as a Gazebo bridge presents a simulated robot.
 
-:class:`TwinNode` owns a :class:`~mmpa.backends.twin.world.SimWorld` and steps it in real time
-(``speed`` sim seconds per wall second; 0: as fast as it can) in ticks of ``1 / rate_hz``
-sim seconds. After every tick it publishes ``/clock`` (the twin's time), ``/odom`` and ``/tf``
-``odom -> base_link`` (the wheel odometry), ``/joint_states`` and the arm's ``/tf`` (the
-nominal DH chain at the encoder angles), ``/truth/base_pose`` and ``/truth/tcp_pose``; the
-scan at the lidar's rate (``world.nominal.lidar.rate``), the camera as ``realsense2_camera``
-names it at ``camera_rate_hz`` (``camera``), and once, latched (reliable + transient local,
-as ``map_server`` serves them): ``/map`` (the twin's occupancy map, drawn through the mapping
-distortion as SLAM made it), ``/reflectors`` (the surveyed reflector map), ``/tf_static``
-(the nominal mounts) and ``/truth/reflectors``. Topic names and message builders are the
-bag recorder's (:data:`mmpa.backends.bag.record.TOPICS`, :mod:`mmpa.backends.bag.messages`
-through the CDR bridge of :mod:`mmpa.backends.ros2.messages`). Stamps: sim time (s).
+:class:`TwinNode` owns a :class:`~mmpa.backends.twin.world.SimWorld` and steps it in real
+time (``speed`` sim seconds per wall second; 0: as fast as it can) in ticks of ``1 /
+rate_hz`` sim seconds. After every tick it publishes ``/clock`` (the twin's time), ``/odom``
+and ``/tf`` ``odom -> base_link`` (the wheel odometry), ``/joint_states`` and the arm's
+``/tf`` (the nominal DH chain at the encoder angles), ``/truth/base_pose`` and
+``/truth/tcp_pose``; the scan at the lidar's rate (``world.nominal.lidar.rate``), the camera
+as ``realsense2_camera`` names it at ``camera_rate_hz`` (``camera``; the images are rendered
+only while something subscribes to them, as Gazebo's camera plugins do; ``camera_info``
+always), and once, latched (reliable + transient local, as ``map_server`` serves them):
+``/map`` (the twin's occupancy map, drawn through the mapping distortion as SLAM made it),
+``/reflectors`` (the surveyed reflector map), ``/tf_static`` (the nominal mounts) and
+``/truth/reflectors``. Topic names and message builders are the bag recorder's
+(:data:`mmpa.backends.bag.record.TOPICS`, :mod:`mmpa.backends.bag.messages` through the CDR
+bridge of :mod:`mmpa.backends.ros2.messages`). Stamps: sim time (s).
 
 Commands (taken on the executor's thread, applied by the stepping thread between ticks):
 
@@ -254,11 +256,15 @@ class TwinNode:
             self._publish("scan", messages.laser_scan(w.lidar.scan(), F["laser"]))
         if self.cfg.camera and t >= self._next_frame - eps:
             self._next_frame = max(self._next_frame + 1.0 / self.cfg.camera_rate_hz, t)
-            frame = w.camera.capture()
-            self._publish("color", rm.rgb_image(frame))
-            self._publish("depth", rm.depth_image(frame))
-            self._publish("camera_info", rm.camera_info(frame.intrinsics, frame.stamp))
+            if self._images_watched():  # rendered for a subscriber only (module docstring)
+                frame = w.camera.capture()
+                self._publish("color", rm.rgb_image(frame))
+                self._publish("depth", rm.depth_image(frame))
+            self._publish("camera_info", rm.camera_info(w.camera.intrinsics, t))
             self._publish("truth_camera", rm.pose_stamped(t, F["map"], w.truth.T_map_camera()))
+
+    def _images_watched(self) -> bool:
+        return any(self._pubs[k].get_subscription_count() > 0 for k in ("color", "depth"))
 
     # --- commands ---------------------------------------------------------------------------
     def _refuse(self, kind: str, reason: str) -> None:

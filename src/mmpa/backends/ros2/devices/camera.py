@@ -6,11 +6,14 @@
 ``SYNC_S``) whose two images both arrived after the call, and, on a simulated clock, are
 stamped no earlier than the call (so the picture shows the scene after whatever moved
 before it); it waits up to the connect timeout for one, then fails naming the topics and
-what arrived.
+what arrived. The two image topics are subscribed only while frames are taken and
+:data:`IDLE_S` after the last one: a camera streams ~30 MB/s of pixels that a mission
+looks at for a few views, and a twin node renders only for a subscriber.
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Any
 
@@ -23,10 +26,12 @@ from mmpa.robot.backend_config import Ros2Topics
 from mmpa.robot.description import CameraIntrinsics
 from mmpa.robot.interfaces import RGBDFrame
 
-__all__ = ["SYNC_S", "Ros2Camera"]
+__all__ = ["IDLE_S", "SYNC_S", "Ros2Camera"]
 
 #: s: the most a color and a depth stamp of one pair may differ
 SYNC_S = 1e-3
+#: wall s after the last capture before the image topics are unsubscribed
+IDLE_S = 1.0
 
 
 class Ros2Camera:
@@ -38,8 +43,12 @@ class Ros2Camera:
     ) -> None:
         self._node, self._clock, self._timeout = node, clock, timeout
         img = "sensor_msgs/msg/Image"
-        self.color = node.subscribe("camera", topics.color, img, graph.SENSOR_DATA, keep=8)
-        self.depth = node.subscribe("camera", topics.depth, img, graph.SENSOR_DATA, keep=8)
+        qos = graph.SENSOR_DATA
+        self.color = node.subscribe("camera", topics.color, img, qos, keep=8, listen=False)
+        self.depth = node.subscribe("camera", topics.depth, img, qos, keep=8, listen=False)
+        self._lock = threading.Lock()
+        self._users = 0  # captures in progress
+        self._idle: threading.Timer | None = None
         self.info = node.subscribe(
             "camera", topics.camera_info, "sensor_msgs/msg/CameraInfo", graph.SENSOR_DATA,
             convert=bag.from_camera_info,
@@ -63,9 +72,39 @@ class Ros2Camera:
                     return cm, dm
         return None
 
+    def _listen(self) -> None:
+        with self._lock:
+            self._users += 1
+            if self._idle is not None:
+                self._idle.cancel()
+                self._idle = None
+            self._node.listen(self.color)
+            self._node.listen(self.depth)
+
+    def _done(self) -> None:
+        with self._lock:
+            self._users -= 1
+            if self._users == 0:
+                self._idle = threading.Timer(IDLE_S, self._stop)
+                self._idle.daemon = True
+                self._idle.start()
+
+    def _stop(self) -> None:
+        with self._lock:
+            if self._users == 0:
+                self._node.stop_listening(self.color)
+                self._node.stop_listening(self.depth)
+
     def capture(self) -> RGBDFrame:
         """A fresh synchronized color + depth pair (module docstring)."""
         k = self.intrinsics
+        self._listen()
+        try:
+            return self._capture(k)
+        finally:
+            self._done()
+
+    def _capture(self, k: CameraIntrinsics) -> RGBDFrame:
         c0, d0 = self.color.count, self.depth.count
         t_call = self._clock.time if self._clock is not None else None
         deadline = time.monotonic() + self._timeout

@@ -65,6 +65,8 @@ class Topic:
         self.refused = 0  # messages the device's conversion refused
         self.last_refusal = ""
         self._taps: list[list[Any]] = []
+        self.subscription: Any = None  # the rclpy subscription while it listens
+        self.opener: Callable[[], Any] | None = None  # creates it (RobotNode.listen)
 
     def put(self, msg: Any) -> None:
         with self._cond:
@@ -140,12 +142,15 @@ class RobotNode:
         qos: Any = None,
         keep: int = 1,
         convert: Callable[[Any], Any] | None = None,
+        listen: bool = True,
     ) -> Topic:
         """A :class:`Topic` filled by a subscription to ``topic`` (``pkg/msg/Name``); QoS
         default: best effort, volatile (matches reliable and best-effort publishers).
         ``convert``: what is stored of each message (None: the message); a message it
         refuses (an :class:`MMPAError`) is dropped, counted in ``store.refused`` and logged;
-        one it maps to None is not for this device (ignored)."""
+        one it maps to None is not for this device (ignored). ``listen=False``: subscribed
+        only between :meth:`listen` and :meth:`stop_listening` (a topic of large messages
+        read now and then, such as a camera's images)."""
         store = Topic(device, topic, keep)
         log = self.node.get_logger()
 
@@ -161,10 +166,23 @@ class RobotNode:
                 return None
             return None if value is None else store.put(value)
 
-        self.node.create_subscription(
+        store.opener = lambda: self.node.create_subscription(
             messages.message_class(type_name), topic, put, qos or graph.SENSOR_DATA
         )
+        if listen:
+            self.listen(store)
         return store
+
+    def listen(self, store: Topic) -> None:
+        """Subscribe ``store``'s topic again (nothing when it listens)."""
+        if store.subscription is None and store.opener is not None:
+            store.subscription = store.opener()
+
+    def stop_listening(self, store: Topic) -> None:
+        """Drop ``store``'s subscription (what it received stays); :meth:`listen` renews it."""
+        sub, store.subscription = store.subscription, None
+        if sub is not None and not self._closing.is_set():
+            self.node.destroy_subscription(sub)
 
     def publisher(self, topic: str, type_name: str, qos: Any = None) -> Any:
         """A publisher of ``type_name`` on ``topic`` (default QoS: reliable, volatile)."""
