@@ -122,7 +122,7 @@ def _callback_times(n: int) -> tuple[list[float], list[float]]:
             t0 = time.perf_counter()
             node.on_scan(msg)
             wall.append(time.perf_counter() - t0)
-        return wall[1:], node.update_times[1:]  # the first builds the localizer
+        return wall[1:], list(node.update_times)[1:]  # the first builds the localizer
 
 
 def _scan_to_numpy(reps: int = 2000) -> tuple[float, float]:

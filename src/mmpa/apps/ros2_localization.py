@@ -148,7 +148,7 @@ class LocalizationNode:
         self.odom_msg: Array | None = None
         self.held: deque[Any] = deque(maxlen=HELD_SCANS)  # scans waiting for the odometry
         self.last_log: dict[str, float] = {}
-        self.update_times: list[float] = []
+        self.update_times: deque[float] = deque(maxlen=1000)  # the last update() times, s
         self.reflectors = self._reflectors()
         self._endpoints(node)
 
@@ -356,9 +356,12 @@ class LocalizationNode:
         self._publish(scan.stamp, est, odom)
 
     def _publish(self, stamp: float, est: Any, odom: Array) -> None:
+        """``/amcl_pose`` first (what a follower waits for), then ``/diagnostics``,
+        ``/particle_cloud`` and ``map -> odom`` on ``/tf``; a pose not ok: the diagnostics
+        only."""
         s = self.s
-        self._diagnostics(stamp, est)
         if not est.ok:  # withheld: nothing downstream moves on it
+            self._diagnostics(stamp, est)
             self.log(
                 "health",
                 f"localization not ok at {stamp:.3f} s, no pose published: {est.reason}",
@@ -371,6 +374,7 @@ class LocalizationNode:
                 localization_msgs.pose_with_covariance(stamp, s.global_frame_id, pose, est.cov)
             )
             self._published = True
+        self._diagnostics(stamp, est)
         parts = getattr(self.loc, "particles", None)
         if parts is not None and len(parts):
             self.cloud_pub.publish(  # the bytes, built with numpy (raw publishing)
@@ -391,6 +395,7 @@ class LocalizationNode:
         h = est.health
         values = {"method": self.cfg.method, "particles": int(est.n_particles)}
         values |= {k: v for k, v in vars(h).items() if isinstance(v, float | int)}
+        values["update_ms"] = 1e3 * self.update_times[-1]  # the library's update() on it
         self.diag_pub.publish(
             localization_msgs.diagnostics(
                 stamp, "mmpa localization", est.ok, est.reason or "ok", values
