@@ -749,3 +749,29 @@ def test_photosensor_range_and_robot_ignored(photo) -> None:
     assert ps.hit() == (None, math.inf)
     _set_mocap(m, d, "sensor", [0.0, 0.0, 1.5])  # pointing up into nothing
     assert ps.hit() == (None, math.inf)
+
+
+def test_mean_frame_averages_the_valid_depths_and_the_colors() -> None:
+    """Against a per-pixel loop: depth the mean of the valid captures (> 0, finite), 0 where
+    fewer than half are valid; color the rounded mean; the stamp the last capture's."""
+    from mmpa.robot.description import CameraIntrinsics
+    from mmpa.robot.interfaces import RGBDFrame, mean_frame
+
+    k = CameraIntrinsics(width=4, height=3, fx=5.0, fy=5.0, cx=1.5, cy=1.0)
+    rng = np.random.default_rng(2)
+    frames = []
+    for i in range(5):
+        d = rng.uniform(0.3, 2.0, (3, 4)).astype(np.float32)
+        d.flat[rng.choice(12, 4, replace=False)] = [0.0, np.nan, np.inf, -1.0]
+        c = rng.integers(0, 256, (3, 4, 3), dtype=np.uint8)
+        frames.append(RGBDFrame(c, d, k, float(i)))
+    m = mean_frame(frames)
+    for v in range(3):
+        for u in range(4):
+            good = [float(f.depth[v, u]) for f in frames if 0 < f.depth[v, u] < np.inf]
+            want = sum(good) / len(good) if 2 * len(good) >= 5 else 0.0
+            assert m.depth[v, u] == pytest.approx(want, rel=1e-6)
+            for ch in range(3):
+                mean_c = sum(int(f.color[v, u, ch]) for f in frames) / 5
+                assert m.color[v, u, ch] == int(np.rint(mean_c))
+    assert m.stamp == 4.0 and m.depth.dtype == np.float32 and m.color.dtype == np.uint8

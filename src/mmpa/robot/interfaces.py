@@ -111,12 +111,14 @@ def mean_frame(frames: list[RGBDFrame]) -> RGBDFrame:
         raise InvalidInputError("mean_frame needs at least one RGB-D frame")
     if len(frames) == 1:
         return frames[0]
-    D = np.stack([f.depth for f in frames]).astype(np.float64)
-    valid = np.isfinite(D) & (D > 0)
-    n = valid.sum(axis=0)
-    depth = np.where(valid, D, 0.0).sum(axis=0) / np.maximum(n, 1)
+    # the sums run over the captures in order, in float64 (exact for the uint8 colors)
+    D = np.stack([f.depth for f in frames])
+    valid = (D > 0) & (D < np.inf)  # False for NaN and inf
+    n = valid.sum(axis=0, dtype=np.int32)
+    depth = np.where(valid, D, D.dtype.type(0)).sum(axis=0, dtype=np.float64) / np.maximum(n, 1)
     depth[n * 2 < len(frames)] = 0.0
-    color = np.mean([f.color.astype(np.float64) for f in frames], axis=0)
+    C = np.stack([f.color for f in frames])
+    color = C.sum(axis=0, dtype=np.int32).astype(np.float64) / len(frames)
     f0 = frames[-1]
     return RGBDFrame(
         np.clip(np.rint(color), 0, 255).astype(np.uint8),
