@@ -591,3 +591,21 @@ def test_a_lying_stick_placed_at_rest_stays_put(world):
         moved.append(np.hypot(*(world.truth.T_map_object("blue_stick")[:2, 3] - p[:2])))
     world.place_object("blue_stick", np.array([3.9, -2.9, h + 0.002]))
     assert max(moved) < 0.015, np.round(moved, 4)
+
+
+def test_remembered_textures_equal_a_fresh_drawing_and_advance_the_generator_alike() -> None:
+    """The textures' memo against the undecorated functions: the same pixels, and the
+    generator left in the state a drawing leaves it (the next draw agrees too)."""
+    from mmpa.backends.twin import textures
+
+    for name, args in [("logo", ()), ("letters", ("AB12",)), ("wood", ()), ("backboard", ())]:
+        fn = getattr(textures, name)
+        for _ in range(2):  # the second call is a memo hit
+            a, b = np.random.default_rng(11), np.random.default_rng(11)
+            img = fn(*args, rng=a) if name == "letters" else fn(a)
+            want = fn.__wrapped__(*args, rng=b) if name == "letters" else fn.__wrapped__(b)
+            assert np.array_equal(img, want), name
+            assert a.bit_generator.state == b.bit_generator.state
+            assert a.uniform() == b.uniform()
+    png = textures.png_bytes(want)
+    assert png == textures.png_bytes(want.copy()) and png.startswith(b"\x89PNG")

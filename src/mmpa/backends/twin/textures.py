@@ -1,13 +1,22 @@
 """Procedural, seeded textures for the twin's scenes (logos, letter tapes, wood, floor).
 
 Each function returns an RGB ``uint8`` image ``(H, W, 3)``; :func:`png_bytes` encodes it for
-MuJoCo's asset dictionary. Same seed, same pixels.
+MuJoCo's asset dictionary. Same seed, same pixels: every twin world draws the same textures
+from the same generator states, so each function remembers its images by the generator's state
+and arguments (:func:`_memo`) and a later world takes them from there, the generator advanced
+as a drawing would have left it.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import io
+import json
 import string
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -31,11 +40,46 @@ _PALETTE = np.array(
 )
 
 
+_MEMO_SIZE = 256  # images kept per function (a scene draws a few dozen)
+_PNG: OrderedDict[bytes, bytes] = OrderedDict()
+
+
+def _remember(cache: OrderedDict, key: Any, value: Any) -> None:
+    cache[key] = value
+    if len(cache) > _MEMO_SIZE:
+        cache.popitem(last=False)
+
+
+def _memo(fn: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
+    """``fn(..., rng, ...)`` remembered by its other arguments and ``rng``'s state: a hit
+    returns a copy of the image and sets ``rng`` to the state the drawing left it in."""
+    cache: OrderedDict[str, tuple[np.ndarray, dict]] = OrderedDict()
+
+    @functools.wraps(fn)
+    def drawn(*args: Any, **kwargs: Any) -> np.ndarray:
+        rng = next(a for a in (*args, *kwargs.values()) if isinstance(a, np.random.Generator))
+        rest = [a for a in args if a is not rng], {k: v for k, v in kwargs.items() if v is not rng}
+        key = json.dumps([repr(rest), rng.bit_generator.state], sort_keys=True, default=str)
+        if key in cache:
+            img, after = cache[key]
+            rng.bit_generator.state = after
+            return img.copy()
+        img = fn(*args, **kwargs)
+        _remember(cache, key, (img.copy(), rng.bit_generator.state))
+        return img
+
+    return drawn
+
+
 def png_bytes(img: np.ndarray) -> bytes:
-    """Encode an RGB uint8 image as PNG."""
-    buf = io.BytesIO()
-    imsave(buf, img, format="png")
-    return buf.getvalue()
+    """Encode an RGB uint8 image as PNG (remembered by the pixels' digest)."""
+    img = np.ascontiguousarray(img)
+    key = hashlib.blake2b(img.tobytes(), digest_size=16).digest() + repr(img.shape).encode()
+    if key not in _PNG:
+        buf = io.BytesIO()
+        imsave(buf, img, format="png")
+        _remember(_PNG, key, buf.getvalue())
+    return _PNG[key]
 
 
 def _canvas(w: int, h: int, bg: np.ndarray) -> tuple[Figure, object]:
@@ -60,6 +104,7 @@ def _random_word(rng: np.random.Generator, n: int) -> str:
     return "".join(rng.choice(list(string.ascii_uppercase + string.digits), n))
 
 
+@_memo
 def logo(rng: np.random.Generator, w: int = 256, h: int = 128) -> np.ndarray:
     """A company-logo-like patch: colored shapes and a short word on a plain background."""
     bg = np.array([1.0, 1.0, 1.0]) * rng.uniform(0.85, 1.0)
@@ -91,6 +136,7 @@ def logo(rng: np.random.Generator, w: int = 256, h: int = 128) -> np.ndarray:
     return _to_rgb(fig)
 
 
+@_memo
 def letters(text: str, rng: np.random.Generator, w: int = 384, h: int = 64) -> np.ndarray:
     """A strip of tape with printed letters (paper 000: 'letters printed on the tape')."""
     bg = np.array([0.98, 0.92, 0.35]) if rng.uniform() < 0.5 else np.array([0.97, 0.97, 0.97])
@@ -109,6 +155,7 @@ def letters(text: str, rng: np.random.Generator, w: int = 384, h: int = 64) -> n
     return _to_rgb(fig)
 
 
+@_memo
 def backboard(rng: np.random.Generator, w: int = 512, h: int = 256) -> np.ndarray:
     """A poster board: several logos and words tiled over a light background."""
     img = np.full((h, w, 3), 235, np.uint8)
@@ -120,6 +167,7 @@ def backboard(rng: np.random.Generator, w: int = 512, h: int = 256) -> np.ndarra
     return img
 
 
+@_memo
 def wood(rng: np.random.Generator, w: int = 256, h: int = 256) -> np.ndarray:
     """Desk-top wood grain: sinusoidal rings with noise."""
     y, x = np.mgrid[0:h, 0:w] / float(w)
@@ -131,6 +179,7 @@ def wood(rng: np.random.Generator, w: int = 256, h: int = 256) -> np.ndarray:
     return (np.clip(img, 0, 1) * 255).astype(np.uint8)
 
 
+@_memo
 def floor(rng: np.random.Generator, w: int = 256, h: int = 256) -> np.ndarray:
     """Speckled floor tiles."""
     img = np.full((h, w, 3), 0.55) + rng.normal(0, 0.05, (h, w, 1))
@@ -139,6 +188,7 @@ def floor(rng: np.random.Generator, w: int = 256, h: int = 256) -> np.ndarray:
     return (np.clip(img, 0, 1) * 255).astype(np.uint8)
 
 
+@_memo
 def wall(rng: np.random.Generator, w: int = 128, h: int = 128) -> np.ndarray:
     """Painted wall with faint noise."""
     img = np.array([0.88, 0.87, 0.82])[None, None, :] + rng.normal(0, 0.015, (h, w, 1))
