@@ -28,7 +28,7 @@ _HEAVY = {
     "test_navigation_cli.py": 12,
     # issues 34-36 (2 cores, this session's --durations): DDS tests wait on other processes
     "test_ros2_localization.py": 20,
-    "test_examples.py": 14,
+    "test_examples.py": 45,
     "test_ros2_devices.py": 13,
     "test_ros2_drive.py": 12,
     "test_ros2_twin.py": 12,
