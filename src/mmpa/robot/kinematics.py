@@ -47,6 +47,7 @@ _TWO_PI = 2.0 * np.pi
 _UR_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 _SINGULAR_S5 = 1e-12  # |sin q5| below this: wrist singular, q6 is free
 _DEDUP_TOL = 1e-9  # rad, two solutions closer than this (mod 2 pi) are the same
+_EYE4, _EYE6 = np.eye(4), np.eye(6)
 
 
 # --- input checks ---------------------------------------------------------------------------
@@ -80,8 +81,12 @@ def _tool(T_flange_point: ArrayLike | None) -> Array | None:
 
 def _dh_matrices(theta: Array, d: Array, a: Array, alpha: Array) -> Array:
     """``Rz(theta) Tz(d) Tx(a) Rx(alpha)`` per joint: theta ``(..., 6)`` -> ``(..., 6, 4, 4)``."""
+    return _dh_cs(theta, d, a, np.cos(alpha), np.sin(alpha))
+
+
+def _dh_cs(theta: Array, d: Array, a: Array, ca: Array, sa: Array) -> Array:
+    """:func:`_dh_matrices` with ``cos alpha``, ``sin alpha`` given."""
     ct, st = np.cos(theta), np.sin(theta)
-    ca, sa = np.cos(alpha), np.sin(alpha)
     A = np.zeros((*theta.shape, 4, 4))
     A[..., 0, 0] = ct
     A[..., 0, 1] = -st * ca
@@ -335,8 +340,15 @@ def _refine(
 ) -> tuple[Array, bool, Array]:
     """Levenberg-Marquardt on the pose error; returns ``(q, converged, e)``."""
 
-    def err(q: Array) -> tuple[Array, Array]:
-        F = link_transforms(dh, q)
+    a, d, alpha, off = dh.as_arrays()
+    ca, sa = np.cos(alpha), np.sin(alpha)
+
+    def err(q: Array) -> tuple[Array, Array]:  # link_transforms(dh, q), without its checks
+        A = _dh_cs(q + off, d, a, ca, sa)
+        F = np.empty((7, 4, 4))
+        F[0] = _EYE4
+        for i in range(6):
+            np.matmul(F[i], A[i], out=F[i + 1])
         return _pose_error(T_target, F[6] if tool is None else F[6] @ tool), F
 
     q = np.array(q0, dtype=float)
@@ -349,7 +361,7 @@ def _refine(
         J = _jacobian_from_frames(F, tool)
         JtJ, Jte = J.T @ J, J.T @ e
         while True:
-            dq = np.linalg.solve(JtJ + lam * lam * np.eye(6), Jte)
+            dq = np.linalg.solve(JtJ + lam * lam * _EYE6, Jte)
             n = float(np.linalg.norm(dq))
             if n > 0.5:  # trust region: far from the solution, take short steps
                 dq *= 0.5 / n
