@@ -179,3 +179,32 @@ def test_only_our_method_gets_the_calibrated_mount(monkeypatch) -> None:
     np.testing.assert_array_equal(mounts["enhanced"], [0.301, -0.002, 0.0])
     off = loc_exp.method_mounts(loc_exp.Config(calibrate_mount=False), methods, "1")
     assert calls == ["1"] and all(v is None for v in off.values())
+
+
+def test_the_twin_mount_calibration_is_remembered_by_its_arguments(monkeypatch) -> None:
+    """One calibration per robot instance and settings in a process: the same arguments
+    give the first result (a copy: the caller's changes stay its own), another seed, site
+    or error model calibrates again."""
+    import numpy as np
+
+    from mmpa.backends.twin.error_model import ErrorModelConfig
+    from mmpa.experiments.paper001 import localization as loc_exp
+
+    calls: list[tuple] = []
+
+    def fake(errors, site, seed, resolution, cfg):
+        calls.append((errors.profile, site, seed))
+        return np.array([0.3, 0.0, float(seed)]), 0.001
+
+    monkeypatch.setattr(loc_exp, "_calibrate_mount", fake)
+    monkeypatch.setattr(loc_exp, "_MOUNTS", {})
+    real = ErrorModelConfig(profile="realistic")
+    a, _ = loc_exp.twin_mount_calibration(real, "1", 7)
+    a[0] = 99.0
+    b, rms = loc_exp.twin_mount_calibration(ErrorModelConfig(profile="realistic"), "1", 7)
+    np.testing.assert_array_equal(b, [0.3, 0.0, 7.0])
+    assert rms == 0.001 and calls == [("realistic", "1", 7)]
+    loc_exp.twin_mount_calibration(real, "1", 8)
+    loc_exp.twin_mount_calibration(real, "2", 7)
+    loc_exp.twin_mount_calibration(ErrorModelConfig(profile="ideal"), "1", 7)
+    assert len(calls) == 4

@@ -22,6 +22,7 @@ calibrated mount; the others (the paper's methods) keep the nominal one.
 
 from __future__ import annotations
 
+import json
 import time
 from contextlib import ExitStack
 from typing import Any
@@ -118,6 +119,10 @@ class Config(TwinLocalization):
     hector: HectorConfig = Field(default_factory=HectorConfig.paper)
 
 
+#: twin_mount_calibration's results in this process, by its arguments
+_MOUNTS: dict[str, tuple[np.ndarray | None, float]] = {}
+
+
 def twin_mount_calibration(
     errors: ErrorModelConfig,
     site: str,
@@ -129,7 +134,26 @@ def twin_mount_calibration(
     so no trial's draws change) and fits its lidar mount from its odometry and scans against
     the map (:func:`~mmpa.navigation.mount_calibration.calibrate_lidar_mount`), from the
     operator's rough pose. Returns the calibrated mount ``[x, y, theta]`` (None if the fit was
-    not trusted) and the fit's RMS (m)."""
+    not trusted) and the fit's RMS (m). A function of its arguments alone (its own seeded
+    episode), so it is remembered per process: the experiments of one run or sweep on the
+    same robot instance calibrate it once."""
+    settings = None if cfg is None else cfg.model_dump(mode="json")
+    key = json.dumps(
+        [errors.model_dump(mode="json"), site, seed, resolution, settings], sort_keys=True
+    )
+    if key not in _MOUNTS:
+        _MOUNTS[key] = _calibrate_mount(errors, site, seed, resolution, cfg)
+    mount, rms = _MOUNTS[key]
+    return (None if mount is None else mount.copy()), rms
+
+
+def _calibrate_mount(
+    errors: ErrorModelConfig,
+    site: str,
+    seed: int,
+    resolution: float,
+    cfg: MountCalibrationConfig | None,
+) -> tuple[np.ndarray | None, float]:
     with SimWorld(errors=errors, site=site, episode=1_000_000) as w:
         grid = twin_map(w, resolution)
         guess = rough_initial_pose(w, np.random.default_rng([seed, 1_000_000]))
