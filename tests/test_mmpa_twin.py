@@ -28,6 +28,11 @@ def site1():
     ts.close()
 
 
+# slow (8 s: a site taught anew; the suite budget): the default run keeps realistic teaching,
+# rough parking, IPE and the needle within 1 mm (tests/test_examples.py:
+# test_teach_and_repeat_in_the_twin, the demo's test in test_cli.py) and replay missing by
+# tens of mm in the reference twin (test_ipe_recovers_the_parking_offset_and_the_tool_hits_the_dot)
+@pytest.mark.slow
 def test_ipe_and_tool_under_realistic_errors():
     """The realistic twin (a new camera session and maybe nudged objects at every park, an
     uncalibrated arm, hand-eye off by 1 mm / 0.5 deg): IPE still converges and MMPA still beats
