@@ -5,12 +5,18 @@ update time on the same sequence.
 
 The sequence and settings are the DDS test's (tests/test_ros2_localization.py: the synthetic
 room, the params file, the beam model at 180 of the beams) with 1440-beam scans. The node runs
-as ``mmpa ros2 localization`` in its own process; this process publishes each scan and
-stamps the moment the ``/amcl_pose`` of that scan's stamp arrives (CLOCK_MONOTONIC is one
-clock for every process of the machine). Then the library alone (``build_localizer`` and
-``update`` on the same scans and odometry, same seed) times ``update``. Prints the medians
-and p95 of both and their difference (the node's overhead: DDS both ways, the scan's and
-tf's conversion, the messages it builds).
+as ``mmpa ros2 localization`` in its own process; this process stamps ``time.monotonic()``
+right before it publishes each scan and again when the ``/amcl_pose`` of that scan's stamp
+has been received (its subscription callback ran and ``spin_until`` returned, 0.04 ms
+later, measured: ``spin_once`` returns as soon as a callback ran, its 10 ms timeout is no
+granularity). The node reports its own ``update()`` time of each scan on ``/diagnostics``
+(``update_ms``), so the latency is also paired scan by scan with the library's update that
+produced it. Then the library alone (``build_localizer`` and ``update`` on the same scans and
+odometry, same seed) times ``update`` in this process. Prints the medians and p95, the
+latency over the library's update (medians of two separate runs: the update's time swings
+by ~10 % between runs of the same code on this machine) and, per scan, the latency minus and
+over the node's own update (the node's overhead: DDS both ways, the scan's and tf's
+conversion, the pose message).
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests.* (its tes
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import test_ros2_localization as seq
-from mmpa.backends.ros2 import graph, messages
+from mmpa.backends.ros2 import graph, localization_msgs, messages
 from mmpa.core.geometry import se2_to_T
 from mmpa.localization.config import AMCLConfig
 from mmpa.localization.settings import (
@@ -38,13 +44,30 @@ from mmpa.localization.settings import (
 )
 
 
-def _node_latencies(n: int, period: float, tmp: Path) -> list[float]:
+def _update_ms(msg: object, into: dict[float, float]) -> None:
+    """The node's ``update_ms`` on ``/diagnostics`` by the scan's stamp."""
+    for st in msg.status:
+        for kv in st.values:
+            if kv.key == "update_ms":
+                into[round(localization_msgs.stamp_of(msg.header), 6)] = 1e-3 * float(kv.value)
+
+
+def _node_latencies(n: int, period: float, tmp: Path) -> tuple[list[float], list[float]]:
+    """Per scan whose pose came back: scan published -> its ``/amcl_pose`` received (s),
+    and the node's own ``update()`` on that scan (s, from ``/diagnostics``; nan if lost)."""
     node = seq._node(tmp / "amcl.yaml")
     sent: dict[float, float] = {}
-    lat: list[float] = []
+    lat: dict[float, float] = {}
+    upd: dict[float, float] = {}
     try:
         with graph.Session("mmpa_bench_player") as s:
             p = seq.Player(s)
+            s.node.create_subscription(
+                messages.message_class("diagnostic_msgs/msg/DiagnosticArray"),
+                "/diagnostics",
+                lambda m: _update_ms(m, upd),
+                graph.TF,
+            )
             assert p.ready(), "the node did not come up"
             grid = seq._grid()
             p.map.publish(messages.to_rclpy(seq.bag.occupancy_grid(grid, seq.T0)))
@@ -62,13 +85,14 @@ def _node_latencies(n: int, period: float, tmp: Path) -> list[float]:
                 got = len(p.poses)
                 s.spin_until(lambda got=got: len(p.poses) > got, period)
                 if len(p.poses) > got and round(p.poses[-1][0], 6) in sent:
-                    lat.append(time.monotonic() - sent[round(p.poses[-1][0], 6)])
+                    key = round(p.poses[-1][0], 6)
+                    lat[key] = time.monotonic() - sent[key]
                 s.spin_until(
                     lambda: False, max(0.0, period - (time.monotonic() - sent[round(t, 6)]))
                 )
     finally:
         seq._stop(node)
-    return lat
+    return list(lat.values()), [upd.get(k, np.nan) for k in lat]
 
 
 def _library_times(n: int) -> list[float]:
@@ -156,7 +180,7 @@ def main() -> None:
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     with tempfile.TemporaryDirectory() as tmp:
         os.environ.setdefault("ROS_LOG_DIR", tmp)
-        lat = _node_latencies(a.scans, a.period, Path(tmp))
+        lat, node_upd = _node_latencies(a.scans, a.period, Path(tmp))
     lib = _library_times(a.scans)
     cb, cb_update = _callback_times(a.scans)
     full, view = _scan_to_numpy()
@@ -165,6 +189,12 @@ def main() -> None:
     print(_row("library: update()", lib))
     print(f"node overhead (medians): {1e3 * (np.median(lat) - np.median(lib)):.2f} ms")
     print(f"latency / library (medians): {np.median(lat) / np.median(lib):.2f}")
+    paired = np.asarray(lat) - np.asarray(node_upd)
+    ok = np.isfinite(paired)
+    print(_row("  its update() in the node", list(np.asarray(node_upd)[ok])))
+    print(_row("  latency - its update, per scan", list(paired[ok])))
+    ratio = np.median(np.asarray(lat)[ok] / np.asarray(node_upd)[ok])
+    print(f"latency / its update in the node (median per scan): {ratio:.2f}")
     print(_row("node callback (no DDS): on_scan", cb))
     print(_row("  its update() inside", cb_update))
     print(f"callback / its update (medians): {np.median(cb) / np.median(cb_update):.2f}")

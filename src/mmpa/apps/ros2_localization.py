@@ -370,8 +370,8 @@ class LocalizationNode:
             return
         pose = np.asarray(self.loc.pose_at(odom), float)
         if est.updated or not self._published:
-            self.pose_pub.publish(
-                localization_msgs.pose_with_covariance(stamp, s.global_frame_id, pose, est.cov)
+            self.pose_pub.publish(  # its bytes (raw publishing: no rclpy message to convert)
+                localization_msgs.pose_with_covariance_cdr(stamp, s.global_frame_id, pose, est.cov)
             )
             self._published = True
         self._diagnostics(stamp, est)

@@ -5,6 +5,7 @@
   the surveyed reflectors (m, ``map``) the message cannot carry;
 - :func:`pose_with_covariance`: ``geometry_msgs/PoseWithCovarianceStamped`` (``/amcl_pose``)
   of a planar pose ``[x, y, theta]`` and its (3, 3) covariance (rows x, y, yaw of ROS's 6x6);
+  :func:`pose_with_covariance_cdr` the same as its serialized bytes (what the node publishes);
 - :func:`particle_cloud`: ``nav2_msgs/ParticleCloud`` (``/particle_cloud``): planar poses
   (N, 3) with their weights; :func:`particle_cloud_cdr` the same as its serialized bytes,
   built with numpy (what the node publishes: 1000 particles as rclpy objects cost ~19 ms);
@@ -26,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from mmpa.backends.bag import messages as bag
-from mmpa.backends.ros2.messages import message_class, to_rclpy
+from mmpa.backends.ros2.messages import message_class, to_rclpy, typestore
 from mmpa.core.errors import InvalidInputError
 from mmpa.core.geometry import Array
 from mmpa.maps.occupancy import OccupancyGrid
@@ -39,6 +40,7 @@ __all__ = [
     "particle_cloud_cdr",
     "planar",
     "pose_with_covariance",
+    "pose_with_covariance_cdr",
     "stamp_of",
 ]
 
@@ -109,6 +111,13 @@ def _T(pose: Any) -> Array:
 def pose_with_covariance(stamp: float, frame_id: str, pose: Array, cov: Array | None) -> Any:
     """``geometry_msgs/PoseWithCovarianceStamped`` (rclpy) of a planar pose and covariance."""
     return to_rclpy(bag.pose_cov_stamped(stamp, frame_id, pose, cov))
+
+
+def pose_with_covariance_cdr(stamp: float, frame_id: str, pose: Array, cov: Array | None) -> bytes:
+    """:func:`pose_with_covariance`'s serialized bytes (the same bytes rclpy serializes), for
+    raw publishing: 20 us instead of 60 us for the rclpy message and its conversion to C."""
+    name = "geometry_msgs/msg/PoseWithCovarianceStamped"
+    return bytes(typestore().serialize_cdr(bag.pose_cov_stamped(stamp, frame_id, pose, cov), name))
 
 
 def from_pose_with_covariance(msg: Any) -> tuple[float, Array, Array]:
