@@ -15,13 +15,14 @@ demo: setup
 	$(VENV)/bin/mmpa demo --out runs/demo
 
 # the suite on up to 4 processes (pytest-xdist), a test file per process (its module
-# fixtures built once; the longest files first: tests/conftest.py): 2 on the 2-core CI
-# machine; one thread per library in each (the processes already fill the cores: OpenMP's
+# fixtures built once; the longest files first: tests/conftest.py, an order that
+# --no-loadscope-reorder keeps: xdist would hand out the files with the most tests first):
+# 2 on the 2-core CI machine; one thread per library in each (the processes already fill the cores: OpenMP's
 # and OpenBLAS's threads would only compete)
 TEST_ENV := OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1
 test: setup
 	$(VENV)/bin/ruff check .
-	$(TEST_ENV) $(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile
+	$(TEST_ENV) $(PY) -m pytest -q -n auto --maxprocesses 4 --dist loadfile --no-loadscope-reorder
 
 # the suite as another x86-64 CPU runs it: numpy's AVX512 kernels off, 1 and 2 threads per
 # library, then as `make test` (issue 32: a verdict never rides on the last bits of a float)

@@ -20,7 +20,7 @@ run() {
   local label=$1
   shift
   echo "[test-portable] == $label"
-  env "$@" "$PY" -m pytest -q -n auto --maxprocesses 4 --dist loadfile -p no:cacheprovider
+  env "$@" "$PY" -m pytest -q -n auto --maxprocesses 4 --dist loadfile --no-loadscope-reorder -p no:cacheprovider
 }
 for threads in 1 2; do
   run "AVX512 off, $threads thread(s)" NPY_DISABLE_CPU_FEATURES="$avx512" \
