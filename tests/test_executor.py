@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import time
 
 import pytest
@@ -180,9 +181,12 @@ def test_a_trial_alone_gives_its_row_of_the_full_run(serial_run):
 
 
 def test_two_workers_give_the_rows_of_one(serial_run, tmp_path):
+    """The two trials on two worker processes, from the serial run's taught task (its
+    ``taught/``, as a resumed run takes it: the suite's budget), give the serial rows."""
     from mmpa.harness.runner import run_experiment
 
-    out = run_experiment("ipe", tmp_path, trials=2, overrides=OVERRIDES, workers=2)
+    shutil.copytree(serial_run / "taught", tmp_path / "taught")
+    out = run_experiment("ipe", tmp_path, trials=2, overrides=OVERRIDES, workers=2, resume=True)
     assert out.summary["executor"] == "local x2"
     assert _rows(tmp_path) == _rows(serial_run)
     with open(tmp_path / "results.csv") as f:
