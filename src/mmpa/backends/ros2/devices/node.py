@@ -182,7 +182,11 @@ class RobotNode:
         """Drop ``store``'s subscription (what it received stays); :meth:`listen` renews it."""
         sub, store.subscription = store.subscription, None
         if sub is not None and not self._closing.is_set():
-            self.node.destroy_subscription(sub)
+            try:
+                self.node.destroy_subscription(sub)
+            except Exception:  # the node closed meanwhile: its subscriptions went with it
+                if not self._closing.is_set():
+                    raise
 
     def publisher(self, topic: str, type_name: str, qos: Any = None) -> Any:
         """A publisher of ``type_name`` on ``topic`` (default QoS: reliable, volatile)."""
