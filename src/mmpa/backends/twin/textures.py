@@ -40,7 +40,7 @@ _PALETTE = np.array(
 )
 
 
-_MEMO_SIZE = 256  # images kept per function (a scene draws a few dozen)
+_MEMO_SIZE = 64  # images kept per function (a scene draws at most a dozen of each)
 _PNG: OrderedDict[bytes, bytes] = OrderedDict()
 
 
