@@ -551,3 +551,39 @@ def test_signed_laser_field_is_unbiased_at_the_truth(world, grid) -> None:
     bias = {s: float(np.hypot(*(P[np.argmax(v), :2] - truth[:2]))) for s, v in ll.items()}
     assert bias[True] <= 0.002
     assert bias[False] >= bias[True] + 0.001
+
+
+def test_product_field_matches_a_per_beam_bilinear_lookup() -> None:
+    """``likelihood_field.log_likelihood_field`` against scipy's bilinear interpolation
+    (``map_coordinates``, order 1) of the padded field at each beam's endpoint, beam by beam:
+    unsigned less the offset floored at 0, and signed in absolute value; a float32 field is
+    read in float64."""
+    from scipy.ndimage import map_coordinates
+
+    from mmpa.localization.likelihood_field import log_likelihood_field
+    from mmpa.maps.occupancy import OccupancyGrid
+
+    rng = np.random.default_rng(4)
+    g = OccupancyGrid(np.zeros((30, 40), np.int8), 0.05, np.array([-0.5, -0.4, 0.0]))
+    table = rng.uniform(-0.3, 1.0, (g.height + 2, g.width + 2))
+    P = np.c_[rng.uniform(-0.3, 1.6, 7), rng.uniform(-0.3, 1.1, 7), rng.uniform(-3, 3, 7)]
+    r, a = rng.uniform(0.05, 2.5, 11), np.linspace(-2.0, 2.0, 11)
+    z_hit, z_rand, rmax, sigma = 0.9, 0.1, 8.0, 0.07
+    cases = [(s, o, t) for s, o in ((False, 0.025), (True, 0.0), (False, 0.0)) for t in "fd"]
+    for signed, offset, dtype in cases:  # the field as float32 and float64
+        field = (table if signed else np.abs(table)).astype(dtype)  # unsigned: >= 0
+        got = log_likelihood_field(
+            g, field.ravel(), (P[:, 0], P[:, 1], P[:, 2]), r, a, sigma, offset, signed,
+            z_hit, z_rand, rmax,
+        )  # fmt: skip
+        field = field.astype(np.float64)  # the function computes in float64
+        for n, (x, y, th) in enumerate(P):
+            want = 0.0
+            for rb, ab in zip(r, a, strict=True):
+                ex, ey = x + rb * np.cos(th + ab), y + rb * np.sin(th + ab)
+                fx = np.clip((ex - g.origin[0]) / g.resolution + 0.5, 0, g.width + 0.999)
+                fy = np.clip((ey - g.origin[1]) / g.resolution + 0.5, 0, g.height + 0.999)
+                dist = map_coordinates(field, [[fy], [fx]], order=1)[0]
+                dist = abs(dist) if signed else max(dist - offset, 0.0)
+                want += np.log(z_hit * np.exp(-(dist**2) / (2 * sigma**2)) + z_rand / rmax)
+            assert got[n] == pytest.approx(want, rel=1e-9, abs=1e-9)

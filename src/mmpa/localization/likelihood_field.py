@@ -106,10 +106,21 @@ def endpoint_cells(
     bx, by = ranges * np.cos(angles), ranges * np.sin(angles)
     cs, sn = np.cos(oth)[:, None], np.sin(oth)[:, None]
     inv = 1.0 / g.resolution
-    fx = (ox - g.origin[0])[:, None] * inv + (cs * bx - sn * by) * inv + 0.5
-    fy = (oy - g.origin[1])[:, None] * inv + (sn * bx + cs * by) * inv + 0.5
-    fx = np.clip(fx, 0.0, g.width + 0.999)
-    fy = np.clip(fy, 0.0, g.height + 0.999)
+    # (o - origin) / res + (R b) / res + 1/2, evaluated in place in that order
+    tmp = sn * by
+    fx = cs * bx
+    fx -= tmp
+    fx *= inv
+    fx += (ox - g.origin[0])[:, None] * inv
+    fx += 0.5
+    np.multiply(cs, by, out=tmp)
+    fy = sn * bx
+    fy += tmp
+    fy *= inv
+    fy += (oy - g.origin[1])[:, None] * inv
+    fy += 0.5
+    np.clip(fx, 0.0, g.width + 0.999, out=fx)
+    np.clip(fy, 0.0, g.height + 0.999, out=fy)
     return fx, fy, oth
 
 
@@ -132,17 +143,50 @@ def log_likelihood_field(
     floored at 0; signed, its absolute value. Returns (N,)."""
     g = grid
     fx, fy, _ = endpoint_cells(g, origin, ranges, angles)
-    i0, j0 = np.floor(fx).astype(np.int32), np.floor(fy).astype(np.int32)
-    tx, ty = fx - i0, fy - j0
-    d = field
-    w2 = g.width + 2
-    k = j0 * w2 + i0
-    dist = (d[k] * (1 - tx) + d[k + 1] * tx) * (1 - ty) + (
-        d[k + w2] * (1 - tx) + d[k + w2 + 1] * tx
-    ) * ty
+    k = _cell_index(fx, g.width + 2, fy)  # fx, fy now the fractions tx, ty in the cell
+    tx, ty = fx, fy
+    d, w2 = field, g.width + 2
+    # (d00 (1 - tx) + d10 tx) (1 - ty) + (d01 (1 - tx) + d11 tx) ty, in place in that order
+    ux = 1 - tx
+    f64 = np.float64  # the products in float64 whatever the field's dtype (float32 or 64)
+    dist = d.take(k).astype(f64, copy=False)
+    dist *= ux
+    part = d[1:].take(k).astype(f64, copy=False)
+    part *= tx
+    dist += part
+    dist *= 1 - ty
+    low = d[w2:].take(k).astype(f64, copy=False)
+    low *= ux
+    part = d[w2 + 1 :].take(k).astype(f64, copy=False)
+    part *= tx
+    low += part
+    low *= ty
+    dist += low
     if signed:
-        dist = np.abs(dist)
+        np.abs(dist, out=dist)
     elif offset > 0:
-        dist = np.maximum(dist - offset, 0.0)
-    pz = z_hit * np.exp(-(dist * dist) / (2 * sigma * sigma)) + z_rand / rmax
-    return np.log(pz).sum(axis=1)
+        dist -= offset
+        np.maximum(dist, 0.0, out=dist)
+    # z_hit exp(-(d^2) / (2 sigma^2)) + z_rand / rmax
+    np.multiply(dist, dist, out=dist)
+    np.negative(dist, out=dist)
+    dist /= 2 * sigma * sigma
+    np.exp(dist, out=dist)
+    dist *= z_hit
+    dist += z_rand / rmax
+    np.log(dist, out=dist)
+    return dist.sum(axis=1)
+
+
+def _cell_index(fx: Array, w2: int, fy: Array) -> Array:
+    """Flat index ``j0 w2 + i0`` of the cells holding ``(fx, fy)`` (``i0 = floor fx``,
+    ``j0 = floor fy``), ``fx`` and ``fy`` replaced by their fractions ``fx - i0``, ``fy - j0``."""
+    f = np.floor(fx)
+    i0 = f.astype(np.int32)
+    fx -= f
+    np.floor(fy, out=f)
+    k = f.astype(np.int32)
+    fy -= f
+    k *= w2
+    k += i0
+    return k
