@@ -265,3 +265,18 @@ def test_invalid_input_raises(fn, arg) -> None:
 def test_invalid_input_error_is_a_value_error() -> None:
     with pytest.raises(ValueError, match="shape"):
         g.vec6_to_T(np.zeros(3))
+
+
+def test_rotation_log_matches_the_closed_form_over_the_whole_range() -> None:
+    """``log_so3`` against the rotation built from a known axis and angle (Rodrigues, written
+    out here), from 1e-12 rad to just under pi (scipy's route near pi), and ``exp_so3`` back."""
+    from mmpa.core.geometry import exp_so3, log_so3
+
+    rng = np.random.default_rng(5)
+    for theta in [1e-12, 1e-9, 1e-6, 1e-3, 0.1, 1.0, 2.0, 3.0, 3.1, np.pi - 1e-6]:
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        K = np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]])
+        R = np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
+        np.testing.assert_allclose(log_so3(R), theta * u, atol=1e-9 if theta > 3 else 1e-14)
+        np.testing.assert_allclose(exp_so3(theta * u), R, atol=1e-14)

