@@ -12,14 +12,20 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_bring_your_own_arm() -> None:
+def _run(script: str, *args: str, timeout: float) -> subprocess.CompletedProcess:
+    """``python examples/SCRIPT ARGS`` as a user runs it; its exit status 0 (else its output)."""
     res = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / "bring_your_own_arm.py")],
+        [sys.executable, str(ROOT / "examples" / script), *args],
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=timeout,
     )
-    assert res.returncode == 0, res.stderr
+    assert res.returncode == 0, res.stdout + res.stderr
+    return res
+
+
+def test_bring_your_own_arm() -> None:
+    res = _run("bring_your_own_arm.py", timeout=120)
     assert "tool moved 100.0 mm" in res.stdout  # the fake arm ended where the path ends
     assert "refused: joint path: joint 1 velocity" in res.stdout
 
@@ -70,14 +76,7 @@ def test_teach_and_repeat_on_your_robot_against_the_fakes() -> None:
     the RealSense recording shows the same still scene, so IPE converges at once on the
     identity and the taught path runs as taught (--yes: no question)."""
     pytest.importorskip("pyrealsense2", reason="the optional extra 'realsense'")
-    res = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / "teach_and_repeat_on_your_robot.py"),
-         "--fake", "--yes"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )  # fmt: skip
-    assert res.returncode == 0, res.stdout + res.stderr
+    res = _run("teach_and_repeat_on_your_robot.py", "--fake", "--yes", timeout=300)
     assert "'path_waypoints': 101" in res.stdout
     assert "'executed': True" in res.stdout and "'ipe_iterations': 1" in res.stdout
     assert "adapted vs taught tool path: 0.0 mm at most" in res.stdout
@@ -86,13 +85,7 @@ def test_teach_and_repeat_on_your_robot_against_the_fakes() -> None:
 def test_teach_and_repeat_in_the_twin() -> None:
     """The twin's teach-and-repeat example: the needle task taught at site 1 and run after
     a rough parking, the needle within 1 mm (the same path as ``mmpa teach`` / ``mmpa run``)."""
-    res = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / "teach_and_repeat_in_the_twin.py")],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert res.returncode == 0, res.stdout + res.stderr
+    res = _run("teach_and_repeat_in_the_twin.py", timeout=300)
     assert "'executed': True" in res.stdout and "'cloud_points'" in res.stdout
     # against the twin's truth: the parking offset ~100 mm, the estimate 0.78 mm, the tip 0.36 mm
     figures = {k: float(v) for k, v in re.findall(r"'(\w+_mm)': ([0-9.]+)", res.stdout)}
@@ -106,13 +99,6 @@ def test_teach_and_repeat_over_ros2_against_the_twin_node() -> None:
     drives to the park pose, IPE, the adapted path (--yes). 16-19 s on 2 idle cores (the
     twin node at up to 3x real time, its camera rendered only while a view is taken)."""
     pytest.importorskip("rclpy", reason="the ros2 extra is not installed")
-    res = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / "teach_and_repeat_over_ros2.py"),
-         "--fake", "--yes"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )  # fmt: skip
-    assert res.returncode == 0, res.stdout + res.stderr
+    res = _run("teach_and_repeat_over_ros2.py", "--fake", "--yes", timeout=600)
     assert "'path_waypoints': 101" in res.stdout and "'executed': True" in res.stdout
     assert "'drive_reached': True" in res.stdout and "'ipe_ok': True" in res.stdout
